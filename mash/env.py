@@ -1,0 +1,494 @@
+"""The MASH environment: one humanoid in MJX, its limbs as agents, Brax's env API.
+
+``MashEnv.reset(key) -> State`` and ``MashEnv.step(state, action) -> State`` are pure and unbatched
+(vmap them over environments). ``action`` is the flat vector of the task's controlled joints
+(``agents.assemble_action`` builds it from per-agent actions). ``state.obs`` is a dict:
+``{group: [n_agents, obs_dim], 'critic': [critic_obs_size]}``. The step runs the PD loop in JAX on
+every physics substep, auto-resets finished episodes (``auto_reset``) and keeps the critic
+observation of the terminal state in ``info['next_critic_obs']`` so time-outs can be bootstrapped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs import base as brax_base
+from mujoco import mjx
+
+from mash import agents
+from mash import randomize
+from mash import rewards
+from mash import robots
+
+State = brax_base.State
+
+TASKS = ("bipedal", "armswing")
+PARTITIONS = ("mash", "ppo", "per_limb")
+
+
+@dataclasses.dataclass(frozen=True)
+class CommandConfig:
+  """Velocity commands, resampled within episodes.
+
+  Attributes:
+    vx: forward speed range (m/s). vy: lateral (m/s). yaw_rate: (rad/s).
+    standing_prob: chance a draw is the standing command (phase frozen, zero velocities).
+    resample_s: seconds between draws.
+  """
+
+  vx: tuple[float, float] = (-0.3, 0.8)
+  vy: tuple[float, float] = (-0.2, 0.2)
+  yaw_rate: tuple[float, float] = (-0.5, 0.5)
+  standing_prob: float = 0.1
+  resample_s: float = 8.0
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+  """The task, its agents and the physics around them.
+
+  Attributes:
+    task: 'bipedal' (legs act, arms held by PD at the default pose) or 'armswing' (all limbs act).
+    partition: 'mash' (one group per limb kind: legs share one actor, arms another), 'ppo' (one
+      agent controls the whole body: the single-agent baseline), 'per_limb' (each limb its own group).
+    robot: key of ``robots.ROBOTS``.
+    ctrl_dt: control period (s); 50 Hz.
+    physics: MJX solver settings.
+    episode_length: control steps before time-out (20 s).
+    action_scale: q_target = q_default + action_scale * action (rad).
+    action_clip: |action| bound before scaling.
+    gait_cycle_s: period of the temporal director (1/k in the paper's eq.).
+    swing_amplitude: leg reference amplitude (rad, times the robot's gait_reference multipliers).
+    arm_swing_amplitude: shoulder reference amplitude (rad), armswing only.
+    agent_id: append the one-hot agent id to each agent's observation (ablation switch).
+    temporal_director: feed the gait phase to the agents (ablation switch: zeros when off).
+    fall_height: torso height (m) under which the episode ends as a fall.
+    fall_tilt: |roll| or |pitch| (rad) above which the episode ends as a fall.
+    commands, randomization, reward_scales, reward_params: see their classes.
+    auto_reset: reset finished episodes inside ``step``.
+  """
+
+  task: str = "bipedal"
+  partition: str = "mash"
+  robot: str = "booster_t1"
+  ctrl_dt: float = 0.02
+  physics: robots.PhysicsConfig = robots.PhysicsConfig()
+  episode_length: int = 1000
+  action_scale: float = 0.25
+  action_clip: float = 10.0
+  gait_cycle_s: float = 0.64
+  swing_amplitude: float = 0.17
+  arm_swing_amplitude: float = 0.3
+  agent_id: bool = True
+  temporal_director: bool = True
+  fall_height: float = 0.4
+  fall_tilt: float = 1.0
+  commands: CommandConfig = CommandConfig()
+  randomization: randomize.DomainRandConfig = randomize.DomainRandConfig()
+  reward_scales: rewards.RewardScales = rewards.RewardScales()
+  reward_params: rewards.RewardParams = rewards.RewardParams()
+  auto_reset: bool = True
+
+
+def quat_to_euler(quat: jax.Array) -> jax.Array:
+  """[4] (w, x, y, z) -> [3] roll, pitch, yaw (rad), ZYX convention."""
+  w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+  roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+  pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
+  yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+  return jnp.stack([roll, pitch, yaw])
+
+
+def quat_rotate_inverse(quat: jax.Array, vec: jax.Array) -> jax.Array:
+  """Rotates a world-frame [3] vector into the frame of the [4] (w, x, y, z) quaternion."""
+  w, u = quat[0], quat[1:]
+  return vec * (2 * w * w - 1) - 2 * w * jnp.cross(u, vec) + 2 * u * jnp.dot(u, vec)
+
+
+def _groups_for(spec: robots.RobotSpec, config: EnvConfig) -> tuple[tuple[str, tuple[robots.Limb, ...]], ...]:
+  """Which limbs act, and how they are grouped into shared-actor agent groups."""
+  kinds = ("legs",) if config.task == "bipedal" else ("legs", "arms")
+  acting = tuple(l for l in spec.limbs if l.group in kinds)
+  if config.partition == "mash":
+    return tuple((k, spec.limbs_of(k)) for k in kinds)
+  if config.partition == "per_limb":
+    return tuple((l.name, (l,)) for l in acting)
+  return (("body", acting),)
+
+
+class MashEnv(brax_base.Env):
+  """A humanoid whose limbs are agents (see module docstring)."""
+
+  def __init__(self, config: EnvConfig = EnvConfig(), spec: robots.RobotSpec | None = None):
+    if config.task not in TASKS:
+      raise ValueError(f"task '{config.task}' is unknown; expected one of {TASKS}")
+    if config.partition not in PARTITIONS:
+      raise ValueError(f"partition '{config.partition}' is unknown; expected one of {PARTITIONS}")
+    if spec is None:
+      if config.robot not in robots.ROBOTS:
+        raise ValueError(f"robot '{config.robot}' is unknown; expected one of {tuple(robots.ROBOTS)}")
+      spec = robots.ROBOTS[config.robot]
+    n_sub = config.ctrl_dt / config.physics.sim_dt
+    if abs(n_sub - round(n_sub)) > 1e-9 or round(n_sub) < 1:
+      raise ValueError(f"ctrl_dt {config.ctrl_dt} must be a whole multiple of sim_dt "
+                       f"{config.physics.sim_dt}")
+    self.config = config
+    self.spec = spec
+    self.n_substeps = int(round(n_sub))
+    self.mj_model = robots.build_model(spec, config.physics)
+    self.mjx_model = mjx.put_model(self.mj_model, impl="jax")
+    m = self.mj_model
+
+    # Joint-indexed tables, all in spec.joints order ([J]).
+    joint_ids = [m.joint(j).id for j in spec.joints]
+    self.n_joints = len(spec.joints)
+    self._qadr = np.array([m.jnt_qposadr[i] for i in joint_ids])
+    self._dadr = np.array([m.jnt_dofadr[i] for i in joint_ids])
+    self._act = np.array([m.actuator(j).id for j in spec.joints])
+    self._q_default = jnp.array([spec.default_pose[j] for j in spec.joints])
+    self._kp = jnp.array([spec.kp[j] for j in spec.joints])
+    self._kd = jnp.array([spec.kd[j] for j in spec.joints])
+    self._tau_max = jnp.array([spec.torque_limit[j] for j in spec.joints])
+    self._root = m.body(spec.root_body).id
+    self._feet = np.array([m.body(f).id for f in spec.feet])
+    n_sole = len(spec.sole_points)
+    self._soles = np.array([[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)]
+                            for side in ("left", "right")])
+    self._floor_pairs = jnp.array([m.pair(f"{side}_sole_{k}_floor").id
+                                   for side in ("left", "right") for k in range(n_sole)])
+    self._penalty_geoms = np.array([m.geom(f"{a}_penalty").id for a, _ in spec.penalized_pairs])
+    self._home_qpos = jnp.array(m.key("home").qpos)
+
+    # Limbs and their phase offsets: legs 0, 0.5; each arm with the opposite leg.
+    self._limb_index = {l.name: i for i, l in enumerate(spec.limbs)}
+    offsets = []
+    for limb in spec.limbs:
+      if limb.group == "arms":
+        offsets.append(0.5 if limb.side > 0 else 0.0)
+      else:
+        offsets.append(0.0 if limb.side > 0 else 0.5)
+    self._phase_offset = jnp.array(offsets)
+    joint_pos = {j: i for i, j in enumerate(spec.joints)}
+    self._limb_joints = {l.name: np.array([joint_pos[j] for j in l.joints]) for l in spec.limbs}
+
+    # Controlled joints (flat action order) and agent groups.
+    self._group_limbs = _groups_for(spec, config)
+    controlled = [joint_pos[j] for _, limbs in self._group_limbs for l in limbs for j in l.joints]
+    self._ctrl = np.array(controlled)
+    groups, cursor = [], 0
+    for name, limbs in self._group_limbs:
+      if name == "body":
+        n_ctrl = sum(len(l.joints) for l in limbs)
+        obs_dim = 3 * n_ctrl + 2 * len(spec.limbs) + 10
+        index = (tuple(range(cursor, cursor + n_ctrl)),)
+        cursor += n_ctrl
+        groups.append(agents.AgentGroup(name, ("body",), obs_dim, n_ctrl, index))
+        continue
+      sizes = {len(l.joints) for l in limbs}
+      if len(sizes) != 1:
+        raise robots.SpecError(f"group '{name}': limbs {[l.name for l in limbs]} have different "
+                               "joint counts and cannot share an actor")
+      n = sizes.pop()
+      obs_dim = 3 * n + 2 + 10 + (len(limbs) if config.agent_id else 0)
+      index = tuple(tuple(range(cursor + k * n, cursor + (k + 1) * n)) for k in range(len(limbs)))
+      cursor += n * len(limbs)
+      groups.append(agents.AgentGroup(name, tuple(l.name for l in limbs), obs_dim, n, index))
+    self.agent_groups: tuple[agents.AgentGroup, ...] = tuple(groups)
+
+    # q_ref: per joint, which limb's phase drives it and with what multiplier.
+    ref_scale = np.zeros(self.n_joints)
+    ref_limb = np.zeros(self.n_joints, dtype=int)
+    arms_act = config.task == "armswing"
+    for i, limb in enumerate(spec.limbs):
+      for j in limb.joints:
+        suffix = robots.joint_suffix(j)
+        if limb.group == "legs" and suffix in spec.gait_reference:
+          ref_scale[joint_pos[j]] = config.swing_amplitude * spec.gait_reference[suffix]
+        elif limb.group == "arms" and arms_act and suffix == spec.arm_swing_joint:
+          ref_scale[joint_pos[j]] = -config.arm_swing_amplitude
+        ref_limb[joint_pos[j]] = i
+    self._ref_scale = jnp.array(ref_scale)
+    self._ref_limb = ref_limb
+    self._ref_is_leg = jnp.array([spec.limbs[i].group == "legs" for i in ref_limb])
+    self._leg_limbs = np.array([self._limb_index[l.name] for l in spec.limbs if l.group == "legs"])
+    self.critic_obs_size = 4 * self.n_joints + 2 + 4 + 3 + 3 + 3 + 2 + 3 + 1 + 1 + 2 + 2
+    self._nominal_mass = float(np.sum(m.body_mass))
+
+  # ----------------------------------------------------------------------------------- Brax API
+  @property
+  def action_size(self) -> int:
+    return len(self._ctrl)
+
+  @property
+  def observation_size(self) -> dict[str, tuple[int, ...]]:
+    sizes = {g.name: (g.n_agents, g.obs_dim) for g in self.agent_groups}
+    sizes["critic"] = (self.critic_obs_size,)
+    return sizes
+
+  @property
+  def backend(self) -> str:
+    return "mjx"
+
+  @property
+  def dt(self) -> float:
+    return self.config.ctrl_dt
+
+  # ------------------------------------------------------------------------------------ helpers
+  def model_for(self, params: randomize.DomainParams) -> mjx.Model:
+    """The MJX model with one environment's randomized parameters."""
+    return randomize.apply(self.mjx_model, params, jnp.asarray(self._dadr), self._root,
+                           self._floor_pairs)
+
+  def _sample_command(self, key: jax.Array) -> jax.Array:
+    c = self.config.commands
+    k = jax.random.split(key, 4)
+    standing = jax.random.uniform(k[0]) < c.standing_prob
+    vel = jnp.stack([jax.random.uniform(k[1], minval=c.vx[0], maxval=c.vx[1]),
+                     jax.random.uniform(k[2], minval=c.vy[0], maxval=c.vy[1]),
+                     jax.random.uniform(k[3], minval=c.yaw_rate[0], maxval=c.yaw_rate[1])])
+    return jnp.concatenate([standing[None].astype(jnp.float32), jnp.where(standing, 0.0, vel)])
+
+  def _sample_push(self, key: jax.Array) -> jax.Array:
+    """[5] force x, y (N) and torque x, y, z (N m) on the torso."""
+    r = self.config.randomization
+    if not r.enabled:
+      return jnp.zeros((5,))
+    kf, kt = jax.random.split(key)
+    return jnp.concatenate([
+        jax.random.uniform(kf, (2,), minval=r.push_force[0], maxval=r.push_force[1]),
+        jax.random.uniform(kt, (3,), minval=r.push_torque[0], maxval=r.push_torque[1])])
+
+  def limb_phase(self, phase: jax.Array) -> jax.Array:
+    """[L] temporal director T_i = sin(2 pi (phase + Delta_i)) as an angle 2 pi (phase + Delta_i)."""
+    return 2 * jnp.pi * (phase + self._phase_offset)
+
+  def gait(self, phase: jax.Array, standing: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Reference joint offsets [J] and leg stance mask [2] for a gait phase (cycles)."""
+    s = jnp.sin(self.limb_phase(phase))
+    leg_ref = jnp.maximum(s, 0.0)  # legs: bend only in swing (sin > 0)
+    per_joint = jnp.where(self._ref_is_leg, leg_ref[self._ref_limb], s[self._ref_limb])
+    q_ref = self._ref_scale * per_joint * (1.0 - standing)
+    stance = jnp.where(standing > 0, 1.0, (s[self._leg_limbs] < 0.1).astype(jnp.float32))
+    return q_ref, stance
+
+  def _sensors(self, data: mjx.Data) -> dict[str, jax.Array]:
+    """Torso and joint quantities read from the MJX state."""
+    quat = data.qpos[3:7]
+    q = data.qpos[self._qadr]
+    sole_z = data.geom_xpos[self._soles][..., 2] - self.spec.sole_radius  # [2, n_sole]
+    feet_height = jnp.min(sole_z, axis=-1)
+    return dict(
+        q=q, dq=data.qvel[self._dadr], quat=quat, euler=quat_to_euler(quat),
+        ang_vel=data.qvel[3:6],  # free-joint angular velocity is already in the body frame
+        lin_vel=quat_rotate_inverse(quat, data.qvel[0:3]),
+        gravity=quat_rotate_inverse(quat, jnp.array([0.0, 0.0, -1.0])),
+        base_height=data.qpos[2] - jnp.min(feet_height), feet_height=feet_height,
+        feet_xy=data.xpos[self._feet][:, :2])
+
+  def _contacts(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+    """Foot contact mask [2] and normal force of each penalized pair [P] (N)."""
+    contact = data._impl.contact  # MJX keeps contacts in its implementation-specific part
+    touching = contact.dist < 1e-3
+    foot = jnp.stack([jnp.any(touching & jnp.isin(contact.geom2, self._soles[i])
+                              | touching & jnp.isin(contact.geom1, self._soles[i])) for i in range(2)])
+    normal = data._impl.efc_force[contact.efc_address]  # penalty pairs are condim 1: one row
+    is_pair = contact.geom1[:, None] == self._penalty_geoms[None, :]
+    penalty = jnp.sum(jnp.where(is_pair & (contact.dist < 0)[:, None], normal[:, None], 0.0), 0)
+    return foot.astype(jnp.float32), penalty
+
+  def _full_target(self, action: jax.Array) -> jax.Array:
+    """[J] joint targets: controlled joints from the action, held joints at default."""
+    scaled = self.config.action_scale * jnp.clip(action, -self.config.action_clip,
+                                                 self.config.action_clip)
+    return self._q_default.at[self._ctrl].add(scaled)
+
+  # --------------------------------------------------------------------------------- reset/step
+  def reset(self, rng: jax.Array) -> State:
+    k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
+    dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints)
+    data = mjx.make_data(self.mjx_model, impl="jax")
+    data = data.replace(qpos=self._home_qpos)
+    command = self._sample_command(k_cmd)
+    a0 = jnp.zeros((self.action_size,))
+    info: dict[str, Any] = {
+        "rng": rng,
+        "step": jnp.zeros((), jnp.int32),
+        "command": command,
+        "phase": jax.random.uniform(k_phase) * (1.0 - command[0]),
+        "last_action": a0, "last_last_action": a0,
+        "q_target": self._q_default,
+        "last_dq": jnp.zeros((self.n_joints,)),
+        "last_torque": jnp.zeros((self.n_joints,)),
+        "air_time": jnp.zeros((2,)),
+        "last_contact": jnp.ones((2,)),
+        "liftoff_xy": data.xpos[self._feet][:, :2],
+        "feet_xy": jnp.zeros((2, 2)),
+        "push": self._sample_push(k_push),
+        "dr": dr,
+        "truncation": jnp.zeros(()),
+        "fall": jnp.zeros(()),
+    }
+    sensors = self._sensors(data)
+    sensors["base_height"] = jnp.asarray(self.spec.base_height_target)
+    contact = jnp.ones((2,))
+    obs = self._observe(sensors, info, contact)
+    info["next_critic_obs"] = obs["critic"]
+    metrics = {f"reward/{k}": jnp.zeros(()) for k in rewards.TERMS
+               if getattr(self.config.reward_scales, k) != 0.0}
+    zero = jnp.zeros(())
+    return State(pipeline_state=data, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
+
+  def _observe(self, s: dict[str, jax.Array], info: dict[str, Any],
+               contact: jax.Array) -> dict[str, jax.Array]:
+    """Agent observations per group and the privileged critic observation."""
+    cfg = self.config
+    command = info["command"]
+    q_ref, stance = self.gait(info["phase"], command[0])
+    angle = self.limb_phase(info["phase"])
+    phase_sc = jnp.stack([jnp.sin(angle), jnp.cos(angle)], axis=-1)  # [L, 2]
+    if not cfg.temporal_director:
+      phase_sc = jnp.zeros_like(phase_sc)
+    q_rel = s["q"] - self._q_default
+    last_full = jnp.zeros((self.n_joints,)).at[self._ctrl].set(info["last_action"])
+    shared = jnp.concatenate([s["euler"], s["ang_vel"], command])
+
+    obs = {}
+    for group, (_, limbs) in zip(self.agent_groups, self._group_limbs):
+      if group.name == "body":
+        obs["body"] = jnp.concatenate([q_rel[self._ctrl], s["dq"][self._ctrl],
+                                       info["last_action"], phase_sc.reshape(-1), shared])[None]
+        continue
+      rows = []
+      for k, limb in enumerate(limbs):
+        idx = self._limb_joints[limb.name]
+        parts = [q_rel[idx], s["dq"][idx], last_full[idx], phase_sc[self._limb_index[limb.name]],
+                 shared]
+        if cfg.agent_id:
+          parts.append(jax.nn.one_hot(k, len(limbs)))
+        rows.append(jnp.concatenate(parts))
+      obs[group.name] = jnp.stack(rows)
+
+    dr = info["dr"]
+    base_angle = 2 * jnp.pi * info["phase"]
+    obs["critic"] = jnp.concatenate([
+        q_rel, s["dq"], last_full, q_rel - q_ref,
+        jnp.stack([jnp.sin(base_angle), jnp.cos(base_angle)]), command,
+        s["lin_vel"], s["euler"], s["ang_vel"], info["push"],
+        dr.friction[None], randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
+        stance, contact])
+    return obs
+
+  def step(self, state: State, action: jax.Array) -> State:
+    cfg = self.config
+    info = dict(state.info)
+    rng, k_delay, k_push, k_cmd, k_reset = jax.random.split(info["rng"], 5)
+    dr = info["dr"]
+    model = self.model_for(dr)
+
+    # Pushes: a new one every push_interval_s, held in between.
+    push_every = max(1, int(round(cfg.randomization.push_interval_s / cfg.ctrl_dt)))
+    new_push = (info["step"] + 1) % push_every == 0
+    push = jnp.where(new_push, self._sample_push(k_push), info["push"])
+    xfrc = jnp.zeros((self.mj_model.nbody, 6)).at[self._root].set(
+        jnp.concatenate([push[:2], jnp.zeros(1), push[2:]]))
+    data = state.pipeline_state.replace(xfrc_applied=xfrc)
+
+    # PD loop on every substep. A motor delay d (drawn each step, in substeps, fractional) keeps the
+    # previous target for the first d of the step: substep k sees a blend weighted by the part of
+    # it that lies before d, which is exact for the time-average of the delayed target.
+    r = cfg.randomization
+    delay = (jax.random.uniform(k_delay, minval=r.motor_delay_ms[0], maxval=r.motor_delay_ms[1])
+             * 1e-3 / cfg.physics.sim_dt) if r.enabled else jnp.zeros(())
+    target_new = self._full_target(action)
+    target_old = info["q_target"]
+    kp, kd = self._kp * dr.kp_scale, self._kd * dr.kd_scale
+
+    def substep(k, carry):
+      data, _ = carry
+      w_old = jnp.clip(delay - k, 0.0, 1.0)
+      target = w_old * target_old + (1.0 - w_old) * target_new
+      tau = kp * (target - data.qpos[self._qadr]) - kd * data.qvel[self._dadr]
+      tau = jnp.clip(tau, -self._tau_max, self._tau_max)
+      data = data.replace(ctrl=data.ctrl.at[self._act].set(tau))
+      return mjx.step(model, data), tau
+
+    data, torque = jax.lax.fori_loop(0, self.n_substeps, substep,
+                                     (data, jnp.zeros((self.n_joints,))))
+
+    # Gait clock, command resampling.
+    command = info["command"]
+    resample_every = max(1, int(round(cfg.commands.resample_s / cfg.ctrl_dt)))
+    step_count = info["step"] + 1
+    command = jnp.where(step_count % resample_every == 0, self._sample_command(k_cmd), command)
+    phase = jnp.where(command[0] > 0, info["phase"],
+                      jnp.mod(info["phase"] + cfg.ctrl_dt / cfg.gait_cycle_s, 1.0))
+
+    s = self._sensors(data)
+    contact, penalty_force = self._contacts(data)
+    q_ref, stance = self.gait(phase, command[0])
+    first_contact = contact * (1.0 - info["last_contact"])
+    air_time = info["air_time"] + cfg.ctrl_dt
+    feet_vel = (s["feet_xy"] - info["feet_xy"]) / cfg.ctrl_dt
+    feet_vel = jnp.where(state.info["step"] > 0, feet_vel, 0.0)
+    # Stride: where the foot landed against where a stride at the commanded velocity would land.
+    yaw = s["euler"][2]
+    cmd_world = jnp.array([jnp.cos(yaw) * command[1] - jnp.sin(yaw) * command[2],
+                           jnp.sin(yaw) * command[1] + jnp.cos(yaw) * command[2]])
+    stride = s["feet_xy"] - info["liftoff_xy"]
+    stride_error = jnp.linalg.norm(stride - cmd_world * cfg.gait_cycle_s, axis=-1)
+    liftoff = (1.0 - contact) * info["last_contact"]
+
+    x = rewards.RewardInputs(
+        q_rel=(s["q"] - self._q_default)[self._ctrl], q_ref=q_ref[self._ctrl], dq=s["dq"],
+        last_dq=info["last_dq"], torque=torque, last_torque=info["last_torque"],
+        torque_limit=self._tau_max, command=command, base_lin_vel=s["lin_vel"],
+        base_ang_vel=s["ang_vel"], euler=s["euler"], gravity_proj=s["gravity"],
+        base_height=s["base_height"], base_height_target=jnp.asarray(self.spec.base_height_target),
+        feet_height=s["feet_height"], feet_vel=feet_vel, contact=contact, stance=stance,
+        first_contact=first_contact, air_time=jnp.minimum(air_time, cfg.gait_cycle_s / 2),
+        stride_error=stride_error, penalty_force=penalty_force, action=action,
+        last_action=info["last_action"], last_last_action=info["last_last_action"],
+        dt=cfg.ctrl_dt)
+    terms = rewards.reward_terms(x, cfg.reward_scales, cfg.reward_params)
+    reward = rewards.total_reward(terms, cfg.reward_params)
+
+    finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+    fall = ((s["base_height"] < cfg.fall_height) | (jnp.abs(s["euler"][0]) > cfg.fall_tilt)
+            | (jnp.abs(s["euler"][1]) > cfg.fall_tilt) | ~finite)
+    truncation = (step_count >= cfg.episode_length) & ~fall
+    done = (fall | truncation).astype(jnp.float32)
+
+    info.update(
+        rng=rng, step=step_count, command=command, phase=phase, q_target=target_new,
+        last_action=action, last_last_action=info["last_action"], last_dq=s["dq"],
+        last_torque=torque, air_time=air_time * (1.0 - contact), last_contact=contact,
+        liftoff_xy=jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
+        feet_xy=s["feet_xy"], push=push, truncation=truncation.astype(jnp.float32),
+        fall=fall.astype(jnp.float32))
+    obs = self._observe(s, info, contact)
+    info["next_critic_obs"] = obs["critic"]
+    reward = jnp.where(finite, reward, 0.0)
+    metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in terms.items()}
+    next_state = State(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics,
+                       info=info)
+    if not cfg.auto_reset:
+      return next_state
+    fresh = self.reset(k_reset)
+    fresh.info.update(truncation=info["truncation"], fall=info["fall"],
+                      next_critic_obs=info["next_critic_obs"])
+    pick = lambda new, old: jnp.where(done > 0, new, old)
+    return next_state.replace(
+        pipeline_state=jax.tree.map(pick, fresh.pipeline_state, data),
+        obs=jax.tree.map(pick, fresh.obs, obs),
+        info=jax.tree.map(pick, fresh.info, info))
+
+
+def make_env(task: str = "bipedal", partition: str = "mash", **overrides: Any) -> MashEnv:
+  """``MashEnv(EnvConfig(task=task, partition=partition, **overrides))``."""
+  return MashEnv(EnvConfig(task=task, partition=partition, **overrides))

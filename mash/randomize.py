@@ -1,0 +1,134 @@
+"""Domain randomization: the paper's eleven parameters (Table "Domain randomization parameters").
+
+Reset-time draws (friction, link masses, CoM offset, gravity, joint damping / friction / armature,
+Kp and Kd scales) live in :class:`DomainParams`, one per environment, kept in the env state; the
+MJX model each env steps is the shared model with those fields replaced (``apply``), so under
+``vmap`` every env has its own physics. Per-step draws (motor delay, pushes) happen in the env step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+from mujoco import mjx
+
+
+@dataclasses.dataclass(frozen=True)
+class DomainRandConfig:
+  """Ranges are the paper's (uniform). ``enabled=False`` gives the nominal robot.
+
+  Attributes:
+    enabled: draw parameters at all (False: nominal values, no delay, no pushes).
+    friction: floor-sole sliding friction coefficient.
+    mass_scale: per-link mass (and inertia) multiplier.
+    com_offset: torso centre-of-mass offset per axis (m).
+    motor_delay_ms: actuation delay, redrawn every control step (ms).
+    push_force: horizontal force on the torso per axis (N), redrawn every ``push_interval_s``.
+    push_torque: torque on the torso per axis (N m); the paper's critic sees a push torque but its
+      table gives no range: ours.
+    push_interval_s: how long one push is held (s).
+    gravity: |g| (m/s^2).
+    joint_damping: per-joint viscous damping (N m s / rad).
+    joint_friction: per-joint dry friction (N m).
+    armature: per-joint reflected rotor inertia (kg m^2).
+    kp_scale: per-joint multiplier of the PD stiffness.
+    kd_scale: per-joint multiplier of the PD damping.
+  """
+
+  enabled: bool = True
+  friction: tuple[float, float] = (0.1, 1.2)
+  mass_scale: tuple[float, float] = (0.9, 1.13)
+  com_offset: tuple[float, float] = (-0.03, 0.03)
+  motor_delay_ms: tuple[float, float] = (0.0, 3.0)
+  push_force: tuple[float, float] = (-20.0, 20.0)
+  push_torque: tuple[float, float] = (-5.0, 5.0)
+  push_interval_s: float = 1.0
+  gravity: tuple[float, float] = (9.78, 9.83)
+  joint_damping: tuple[float, float] = (0.0, 0.05)
+  joint_friction: tuple[float, float] = (0.0, 0.05)
+  armature: tuple[float, float] = (0.005, 0.015)
+  kp_scale: tuple[float, float] = (0.95, 1.05)
+  kd_scale: tuple[float, float] = (0.95, 1.05)
+
+
+@struct.dataclass
+class DomainParams:
+  """One environment's reset-time draws.
+
+  Attributes:
+    friction: [] floor-sole friction.
+    mass_scale: [nbody] link mass multipliers (world body included, unused).
+    com_offset: [3] torso CoM offset (m).
+    gravity: [] |g|.
+    joint_damping: [n_joints], joint_friction: [n_joints], armature: [n_joints].
+    kp_scale: [n_joints], kd_scale: [n_joints].
+  """
+
+  friction: jax.Array
+  mass_scale: jax.Array
+  com_offset: jax.Array
+  gravity: jax.Array
+  joint_damping: jax.Array
+  joint_friction: jax.Array
+  armature: jax.Array
+  kp_scale: jax.Array
+  kd_scale: jax.Array
+
+
+def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
+            nominal_armature: float = 0.01) -> DomainParams:
+  """The un-randomized robot (DR off)."""
+  ones = jnp.ones((n_joints,))
+  return DomainParams(
+      friction=jnp.asarray(nominal_friction), mass_scale=jnp.ones((nbody,)),
+      com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81), joint_damping=0.0 * ones,
+      joint_friction=0.0 * ones, armature=nominal_armature * ones, kp_scale=ones, kd_scale=ones)
+
+
+def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int) -> DomainParams:
+  """Draws one environment's parameters (nominal when ``config.enabled`` is False)."""
+  if not config.enabled:
+    return nominal(nbody, n_joints)
+  k = jax.random.split(key, 9)
+  u = lambda key, r, shape=(): jax.random.uniform(key, shape, minval=r[0], maxval=r[1])
+  return DomainParams(
+      friction=u(k[0], config.friction), mass_scale=u(k[1], config.mass_scale, (nbody,)),
+      com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
+      joint_damping=u(k[4], config.joint_damping, (n_joints,)),
+      joint_friction=u(k[5], config.joint_friction, (n_joints,)),
+      armature=u(k[6], config.armature, (n_joints,)),
+      kp_scale=u(k[7], config.kp_scale, (n_joints,)),
+      kd_scale=u(k[8], config.kd_scale, (n_joints,)))
+
+
+def apply(model: mjx.Model, params: DomainParams, dof_index: jax.Array, root_body: int,
+          floor_pairs: jax.Array) -> mjx.Model:
+  """The shared model with one environment's parameters written in.
+
+  Args:
+    model: the nominal MJX model.
+    params: that environment's draws.
+    dof_index: [n_joints] dof address of each actuated joint.
+    root_body: body id of the torso (gets the CoM offset).
+    floor_pairs: [n_pairs] ids of the sole-floor contact pairs (get the friction).
+  """
+  pair_friction = model.pair_friction.at[floor_pairs, 0].set(params.friction)
+  pair_friction = pair_friction.at[floor_pairs, 1].set(params.friction)
+  return model.tree_replace({
+      "pair_friction": pair_friction,
+      "body_mass": model.body_mass * params.mass_scale,
+      "body_inertia": model.body_inertia * params.mass_scale[:, None],
+      "body_ipos": model.body_ipos.at[root_body].add(params.com_offset),
+      "opt.gravity": jnp.array([0.0, 0.0, -1.0]) * params.gravity,
+      "dof_damping": model.dof_damping.at[dof_index].set(params.joint_damping),
+      "dof_frictionloss": model.dof_frictionloss.at[dof_index].set(params.joint_friction),
+      "dof_armature": model.dof_armature.at[dof_index].set(params.armature),
+  })
+
+
+def total_mass(model: mjx.Model, params: DomainParams) -> jax.Array:
+  """Randomized total mass (kg), which the critic observes."""
+  return jnp.sum(model.body_mass * params.mass_scale)
