@@ -96,6 +96,15 @@ class EnvConfig:
   auto_reset: bool = True
 
 
+def pd_torque(q_target: jax.Array, q: jax.Array, dq: jax.Array, kp: jax.Array, kd: jax.Array,
+              tau_max: jax.Array) -> jax.Array:
+  """PD torque clipped to the motor limits: clip(kp (q_target - q) - kd dq, -tau_max, tau_max).
+
+  All arguments ``[J]`` (rad, rad/s, N m/rad, N m s/rad, N m); returns ``[J]`` (N m).
+  """
+  return jnp.clip(kp * (q_target - q) - kd * dq, -tau_max, tau_max)
+
+
 def quat_to_euler(quat: jax.Array) -> jax.Array:
   """[4] (w, x, y, z) -> [3] roll, pitch, yaw (rad), ZYX convention."""
   w, x, y, z = quat[0], quat[1], quat[2], quat[3]
@@ -185,7 +194,7 @@ class MashEnv(brax_base.Env):
     for name, limbs in self._group_limbs:
       if name == "body":
         n_ctrl = sum(len(l.joints) for l in limbs)
-        obs_dim = 3 * n_ctrl + 2 * len(spec.limbs) + 10
+        obs_dim = 3 * n_ctrl + 2 * len(limbs) + 10  # phases of the acting limbs only
         index = (tuple(range(cursor, cursor + n_ctrl)),)
         cursor += n_ctrl
         groups.append(agents.AgentGroup(name, ("body",), obs_dim, n_ctrl, index))
@@ -277,7 +286,7 @@ class MashEnv(brax_base.Env):
     stance = jnp.where(standing > 0, 1.0, (s[self._leg_limbs] < 0.1).astype(jnp.float32))
     return q_ref, stance
 
-  def _sensors(self, data: mjx.Data) -> dict[str, jax.Array]:
+  def sensors(self, data: mjx.Data) -> dict[str, jax.Array]:
     """Torso and joint quantities read from the MJX state."""
     quat = data.qpos[3:7]
     q = data.qpos[self._qadr]
@@ -291,7 +300,7 @@ class MashEnv(brax_base.Env):
         base_height=data.qpos[2] - jnp.min(feet_height), feet_height=feet_height,
         feet_xy=data.xpos[self._feet][:, :2])
 
-  def _contacts(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+  def contacts(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
     """Foot contact mask [2] and normal force of each penalized pair [P] (N)."""
     contact = data._impl.contact  # MJX keeps contacts in its implementation-specific part
     touching = contact.dist < 1e-3
@@ -334,17 +343,17 @@ class MashEnv(brax_base.Env):
         "truncation": jnp.zeros(()),
         "fall": jnp.zeros(()),
     }
-    sensors = self._sensors(data)
+    sensors = self.sensors(data)
     sensors["base_height"] = jnp.asarray(self.spec.base_height_target)
     contact = jnp.ones((2,))
-    obs = self._observe(sensors, info, contact)
+    obs = self.observe(sensors, info, contact)
     info["next_critic_obs"] = obs["critic"]
     metrics = {f"reward/{k}": jnp.zeros(()) for k in rewards.TERMS
                if getattr(self.config.reward_scales, k) != 0.0}
     zero = jnp.zeros(())
     return State(pipeline_state=data, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
-  def _observe(self, s: dict[str, jax.Array], info: dict[str, Any],
+  def observe(self, s: dict[str, jax.Array], info: dict[str, Any],
                contact: jax.Array) -> dict[str, jax.Array]:
     """Agent observations per group and the privileged critic observation."""
     cfg = self.config
@@ -361,8 +370,10 @@ class MashEnv(brax_base.Env):
     obs = {}
     for group, (_, limbs) in zip(self.agent_groups, self._group_limbs):
       if group.name == "body":
+        acting = np.array([self._limb_index[l.name] for l in limbs])
         obs["body"] = jnp.concatenate([q_rel[self._ctrl], s["dq"][self._ctrl],
-                                       info["last_action"], phase_sc.reshape(-1), shared])[None]
+                                       info["last_action"], phase_sc[acting].reshape(-1),
+                                       shared])[None]
         continue
       rows = []
       for k, limb in enumerate(limbs):
@@ -413,8 +424,7 @@ class MashEnv(brax_base.Env):
       data, _ = carry
       w_old = jnp.clip(delay - k, 0.0, 1.0)
       target = w_old * target_old + (1.0 - w_old) * target_new
-      tau = kp * (target - data.qpos[self._qadr]) - kd * data.qvel[self._dadr]
-      tau = jnp.clip(tau, -self._tau_max, self._tau_max)
+      tau = pd_torque(target, data.qpos[self._qadr], data.qvel[self._dadr], kp, kd, self._tau_max)
       data = data.replace(ctrl=data.ctrl.at[self._act].set(tau))
       return mjx.step(model, data), tau
 
@@ -429,8 +439,8 @@ class MashEnv(brax_base.Env):
     phase = jnp.where(command[0] > 0, info["phase"],
                       jnp.mod(info["phase"] + cfg.ctrl_dt / cfg.gait_cycle_s, 1.0))
 
-    s = self._sensors(data)
-    contact, penalty_force = self._contacts(data)
+    s = self.sensors(data)
+    contact, penalty_force = self.contacts(data)
     q_ref, stance = self.gait(phase, command[0])
     first_contact = contact * (1.0 - info["last_contact"])
     air_time = info["air_time"] + cfg.ctrl_dt
@@ -471,7 +481,7 @@ class MashEnv(brax_base.Env):
         liftoff_xy=jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
         feet_xy=s["feet_xy"], push=push, truncation=truncation.astype(jnp.float32),
         fall=fall.astype(jnp.float32))
-    obs = self._observe(s, info, contact)
+    obs = self.observe(s, info, contact)
     info["next_critic_obs"] = obs["critic"]
     reward = jnp.where(finite, reward, 0.0)
     metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in terms.items()}

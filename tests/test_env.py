@@ -1,0 +1,439 @@
+"""Tests for mash.env, mash.randomize and the T1 robot spec.
+
+Most tests call pure functions (``pd_torque``, ``quat_to_euler``, ``MashEnv.observe`` on hand-built
+sensor dicts, ``randomize.sample`` / ``apply``): no MJX step, so nothing slow to compile. Only two
+MJX programs are compiled, once each (session fixtures): a batched reset + scanned rollout of the
+bipedal env with domain randomization on (short episodes, to see time-outs and auto-resets), and
+the same for the nominal robot (DR off) for the standing test.
+"""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mash import env as env_lib
+from mash import randomize
+from mash import rewards
+from mash import robots
+
+T1 = robots.BOOSTER_T1
+DR_OFF = randomize.DomainRandConfig(enabled=False)
+EPISODE_LENGTH = 50   # control steps of the DR-on env (1 s), so a 200-step rollout sees time-outs
+RANDOM_STEPS = 200    # random-action rollout (DR on)
+STAND_STEPS = 100     # 2 s at 50 Hz (DR off)
+SHARED = 3 + 3 + 4    # euler, angular velocity, command
+
+
+# ------------------------------------------------------------------------------------- fixtures
+def _make_simulate(env):
+  """jit(keys [B], actions [T, B, A]) -> (first state, last state, per-step trace): one program."""
+  reset, step = jax.vmap(env.reset), jax.vmap(env.step)
+
+  def simulate(keys, actions):
+    state0 = reset(keys)
+
+    def body(state, action):
+      state = step(state, action)
+      qpos = state.pipeline_state.qpos
+      trace = dict(
+          qpos=qpos, qvel=state.pipeline_state.qvel, z=qpos[:, 2],
+          euler=jax.vmap(env_lib.quat_to_euler)(qpos[:, 3:7]), done=state.done,
+          reward=state.reward, metrics=state.metrics, step=state.info["step"],
+          truncation=state.info["truncation"], fall=state.info["fall"],
+          torque=state.info["last_torque"], push=state.info["push"], obs=state.obs)
+      return state, trace
+
+    last, trace = jax.lax.scan(body, state0, actions)
+    return state0, last, trace
+
+  return jax.jit(simulate)
+
+
+@pytest.fixture(scope="session")
+def dr_env():
+  """Bipedal MASH env, domain randomization on, 1 s episodes."""
+  return env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH)
+
+
+@pytest.fixture(scope="session")
+def nominal_env():
+  """Bipedal MASH env, domain randomization off (nominal robot, no delay, no pushes)."""
+  return env_lib.make_env("bipedal", "mash", randomization=DR_OFF)
+
+
+@pytest.fixture(scope="session")
+def armswing_env():
+  """Armswing MASH env (legs and arms act); only its pure functions are called."""
+  return env_lib.make_env("armswing", "mash")
+
+
+@pytest.fixture(scope="session")
+def random_rollout(dr_env):
+  """4 envs, DR on, 200 steps of uniform actions in [-1, 1]: (state0, last, trace), numpy."""
+  b = 4
+  actions = jax.random.uniform(jax.random.key(1), (RANDOM_STEPS, b, dr_env.action_size),
+                               minval=-1.0, maxval=1.0)
+  out = _make_simulate(dr_env)(jax.random.split(jax.random.key(0), b), actions)
+  return _to_numpy(out)
+
+
+@pytest.fixture(scope="session")
+def standing_rollout(nominal_env):
+  """2 envs, DR off, default pose, zero action for 2 s: (state0, last, trace), numpy."""
+  b = 2
+  actions = jnp.zeros((STAND_STEPS, b, nominal_env.action_size))
+  out = _make_simulate(nominal_env)(jax.random.split(jax.random.key(2), b), actions)
+  return _to_numpy(out)
+
+
+# -------------------------------------------------------------------------------------- helpers
+def _to_numpy(tree):
+  """Device arrays -> numpy (typed PRNG keys -> their raw key data)."""
+  def conv(x):
+    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+      x = jax.random.key_data(x)
+    return np.asarray(x)
+  return jax.tree.map(conv, tree)
+
+
+def _controlled_joints(env):
+  """Joint name of each entry of the flat action vector (per-limb groups), from the agent groups."""
+  limbs = {l.name: l for l in env.spec.limbs}
+  names = [None] * env.action_size
+  for g in env.agent_groups:
+    for member, idx in zip(g.members, g.action_index):
+      for j, pos in zip(limbs[member].joints, idx):
+        names[pos] = j
+  return names
+
+
+def _mirror(values, names):
+  """Sagittal mirror of a joint-indexed vector: swap left/right partners, apply mirror_sign."""
+  pos = {n: i for i, n in enumerate(names)}
+  out = np.empty_like(values)
+  for i, n in enumerate(names):
+    suffix = robots.joint_suffix(n)
+    partner = ("Right_" if n.startswith("Left_") else "Left_") + suffix
+    out[i] = T1.mirror_sign[suffix] * values[pos[partner]]
+  return out
+
+
+def _random_inputs(env, seed, phase=0.3, standing=0.0):
+  """A hand-built sensor dict, info dict and contact mask (numpy, nominal DR params)."""
+  rng = np.random.default_rng(seed)
+  nj = env.n_joints
+  q_default = np.array([T1.default_pose[j] for j in T1.joints])
+  sensors = dict(q=q_default + rng.normal(0, 0.2, nj), dq=rng.normal(0, 1.0, nj),
+                 euler=rng.normal(0, 0.1, 3), ang_vel=rng.normal(0, 0.5, 3),
+                 lin_vel=rng.normal(0, 0.5, 3))
+  command = np.array([standing, *(rng.uniform(-0.5, 0.5, 3) * (1.0 - standing))])
+  info = dict(command=command, phase=np.asarray(phase),
+              last_action=rng.uniform(-1, 1, env.action_size),
+              dr=randomize.nominal(env.mj_model.nbody, nj), push=rng.uniform(-5, 5, 5))
+  return sensors, info, np.array([1.0, 0.0])
+
+
+def _observe(env, sensors, info, contact):
+  return jax.tree.map(np.asarray, env.observe(
+      {k: jnp.asarray(v, jnp.float32) for k, v in sensors.items()},
+      {k: (jnp.asarray(v, jnp.float32) if isinstance(v, np.ndarray) else v)
+       for k, v in info.items()}, jnp.asarray(contact, jnp.float32)))
+
+
+def _mirror_inputs(env, sensors, info):
+  """The sagittal mirror of a state: joints swapped with signs, roll/yaw, wx/wz, vy, yaw-rate
+  negated, gait phase half a cycle on."""
+  flip_xz = np.array([-1.0, 1.0, -1.0])
+  s = dict(sensors, q=_mirror(sensors["q"], T1.joints), dq=_mirror(sensors["dq"], T1.joints),
+           euler=sensors["euler"] * flip_xz, ang_vel=sensors["ang_vel"] * flip_xz,
+           lin_vel=sensors["lin_vel"] * np.array([1.0, -1.0, 1.0]))
+  i = dict(info, command=info["command"] * np.array([1.0, 1.0, -1.0, -1.0]),
+           phase=np.mod(info["phase"] + 0.5, 1.0),
+           last_action=_mirror(info["last_action"], _controlled_joints(env)))
+  return s, i
+
+
+# ---------------------------------------------------------------------------- pure functions
+def test_pd_torque_hand_values():
+  """tau = kp (q* - q) - kd dq inside the limits."""
+  tau = env_lib.pd_torque(q_target=jnp.array([0.1, -0.2, 0.0]), q=jnp.array([0.0, 0.0, 0.05]),
+                          dq=jnp.array([1.0, -0.5, 0.0]), kp=jnp.array([100.0, 50.0, 200.0]),
+                          kd=jnp.array([2.0, 4.0, 3.0]), tau_max=jnp.array([45.0, 30.0, 60.0]))
+  # 100*0.1 - 2*1 = 8;  50*(-0.2) - 4*(-0.5) = -10 + 2 = -8;  200*(-0.05) - 0 = -10.
+  chex.assert_trees_all_close(tau, jnp.array([8.0, -8.0, -10.0]), atol=1e-5)
+
+
+def test_pd_torque_clips_at_limits():
+  """Large target errors (either sign) and large velocities saturate at +-tau_max, no further."""
+  tau_max = jnp.array([45.0, 30.0, 60.0, 20.0])
+  tau = env_lib.pd_torque(q_target=jnp.array([10.0, -10.0, 0.0, 0.3]), q=jnp.zeros(4),
+                          dq=jnp.array([0.0, 0.0, -100.0, 0.0]),
+                          kp=jnp.array([150.0, 150.0, 200.0, 150.0]), kd=jnp.array([3.0] * 4),
+                          tau_max=tau_max)
+  # 1500 -> 45;  -1500 -> -30;  -3*(-100) = 300 -> 60;  150*0.3 = 45 -> 20.
+  chex.assert_trees_all_close(tau, jnp.array([45.0, -30.0, 60.0, 20.0]))
+  # Just under the limit: not clipped. 150*0.1 = 15 < 20.
+  assert float(env_lib.pd_torque(0.1, 0.0, 0.0, 150.0, 3.0, 20.0)) == pytest.approx(15.0)
+
+
+def test_quat_to_euler_matches_scipy():
+  """ZYX roll/pitch/yaw from a (w, x, y, z) quaternion, against scipy's intrinsic 'ZYX'."""
+  chex.assert_trees_all_close(env_lib.quat_to_euler(jnp.array([1.0, 0, 0, 0])), jnp.zeros(3))
+  # Rotation about x by 0.3: q = (cos 0.15, sin 0.15, 0, 0) -> roll 0.3.
+  q = jnp.array([np.cos(0.15), np.sin(0.15), 0.0, 0.0])
+  chex.assert_trees_all_close(env_lib.quat_to_euler(q), jnp.array([0.3, 0.0, 0.0]), atol=1e-6)
+  rng = np.random.default_rng(0)
+  for _ in range(5):
+    rpy = rng.uniform([-1.0, -1.2, -3.0], [1.0, 1.2, 3.0])
+    x, y, z, w = Rotation.from_euler("ZYX", rpy[::-1]).as_quat()
+    chex.assert_trees_all_close(env_lib.quat_to_euler(jnp.array([w, x, y, z])),
+                                jnp.asarray(rpy, jnp.float32), atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------- observations
+@pytest.mark.parametrize("task,partition,sizes,action_size", [
+    ("bipedal", "mash", {"legs": (2, 32), "critic": (106,)}, 12),
+    ("armswing", "mash", {"legs": (2, 32), "arms": (2, 26), "critic": (106,)}, 20),
+    ("bipedal", "ppo", {"body": (1, 50), "critic": (106,)}, 12),
+    ("armswing", "ppo", {"body": (1, 78), "critic": (106,)}, 20),
+])
+def test_observation_sizes(task, partition, sizes, action_size):
+  """observation_size / action_size per task and partition, and observe() returns those shapes."""
+  env = env_lib.make_env(task, partition)
+  assert env.observation_size == sizes
+  assert env.action_size == action_size
+  obs = _observe(env, *_random_inputs(env, seed=0))
+  assert set(obs) == set(sizes)
+  for name, shape in sizes.items():
+    chex.assert_shape(obs[name], shape)
+
+
+def test_leg_observation_layout(dr_env):
+  """Leg agent row: q_rel 6 | dq 6 | previous action 6 | phase sin,cos | euler | angvel | command | id."""
+  sensors, info, contact = _random_inputs(dr_env, seed=1, phase=0.3)
+  obs = _observe(dr_env, sensors, info, contact)["legs"]
+  q_rel = sensors["q"] - np.array([T1.default_pose[j] for j in T1.joints])
+  for k, (offset, one_hot) in enumerate([(0.0, [1, 0]), (0.5, [0, 1])]):  # left, right
+    idx = slice(6 * k, 6 * k + 6)  # legs are joints 0..5 (left), 6..11 (right)
+    angle = 2 * np.pi * (0.3 + offset)
+    expected = np.concatenate([q_rel[idx], sensors["dq"][idx], info["last_action"][idx],
+                               [np.sin(angle), np.cos(angle)], sensors["euler"],
+                               sensors["ang_vel"], info["command"], one_hot])
+    np.testing.assert_allclose(obs[k], expected, rtol=1e-5, atol=1e-5)
+
+
+def test_arm_and_ppo_observation_layout(armswing_env):
+  """Arm rows (4+4+4+2+10+2) and the PPO body row (all joints, acting limbs' phases, no id)."""
+  sensors, info, contact = _random_inputs(armswing_env, seed=2, phase=0.1)
+  q_rel = sensors["q"] - np.array([T1.default_pose[j] for j in T1.joints])
+  shared = np.concatenate([sensors["euler"], sensors["ang_vel"], info["command"]])
+  arms = _observe(armswing_env, sensors, info, contact)["arms"]
+  for k, (offset, one_hot) in enumerate([(0.5, [1, 0]), (0.0, [0, 1])]):  # arm opposite its leg
+    idx = slice(12 + 4 * k, 16 + 4 * k)
+    angle = 2 * np.pi * (0.1 + offset)
+    expected = np.concatenate([q_rel[idx], sensors["dq"][idx], info["last_action"][idx],
+                               [np.sin(angle), np.cos(angle)], shared, one_hot])
+    np.testing.assert_allclose(arms[k], expected, rtol=1e-5, atol=1e-5)
+
+  ppo = env_lib.make_env("armswing", "ppo")
+  body = _observe(ppo, sensors, info, contact)["body"][0]
+  angles = 2 * np.pi * (0.1 + np.array([0.0, 0.5, 0.5, 0.0]))  # left/right leg, left/right arm
+  expected = np.concatenate([q_rel, sensors["dq"], info["last_action"],
+                             np.stack([np.sin(angles), np.cos(angles)], -1).reshape(-1), shared])
+  np.testing.assert_allclose(body, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_critic_observation_layout(dr_env):
+  """Critic: q_rel 20 | dq 20 | prev action 20 | q_rel - q_ref 20 | phase 2 | command 4 | v 3 |
+  euler 3 | w 3 | push 5 | friction | mass offset | stance 2 | contact 2 (= 106)."""
+  sensors, info, contact = _random_inputs(dr_env, seed=3, phase=0.3)
+  info["dr"] = info["dr"].replace(friction=jnp.asarray(0.7),
+                                  mass_scale=jnp.full((dr_env.mj_model.nbody,), 1.1))
+  c = _observe(dr_env, sensors, info, contact)["critic"]
+  q_rel = sensors["q"] - np.array([T1.default_pose[j] for j in T1.joints])
+  q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.3), jnp.asarray(0.0)))
+  last_full = np.zeros(20)
+  last_full[:12] = info["last_action"]
+  expected = np.concatenate([
+      q_rel, sensors["dq"], last_full, q_rel - q_ref,
+      [np.sin(2 * np.pi * 0.3), np.cos(2 * np.pi * 0.3)], info["command"], sensors["lin_vel"],
+      sensors["euler"], sensors["ang_vel"], info["push"], [0.7],
+      [0.1 * dr_env.mj_model.body_mass.sum()],  # mass offset from nominal: 10 % of 31.6 kg
+      stance, contact])
+  np.testing.assert_allclose(c, expected, rtol=1e-4, atol=1e-4)
+  # Phase 0.3: left leg sin(0.6 pi) > 0 is in swing, right leg sin(1.6 pi) < 0 in stance.
+  np.testing.assert_array_equal(stance, [0.0, 1.0])
+
+
+@pytest.mark.parametrize("standing", [0.0, 1.0])
+def test_left_right_mirror_symmetry(armswing_env, standing):
+  """Left agent's obs of the mirrored state == right agent's obs of the state, mirror signs
+  applied (joint mirror_sign, roll/yaw, wx/wz, vy, yaw rate), one-hot id swapped; both groups."""
+  sensors, info, contact = _random_inputs(armswing_env, seed=4, phase=0.37, standing=standing)
+  obs = _observe(armswing_env, sensors, info, contact)
+  obs_m = _observe(armswing_env, *_mirror_inputs(armswing_env, sensors, info), contact)
+  shared_sign = np.array([-1, 1, -1, -1, 1, -1, 1, 1, -1, -1.0])  # euler, angvel, command
+  for group in ("legs", "arms"):
+    left_limb = T1.limbs_of(group)[0]
+    m = np.array([T1.mirror_sign[robots.joint_suffix(j)] for j in left_limb.joints])
+    sign = np.concatenate([m, m, m, [1.0, 1.0], shared_sign])
+    for a, b in ((0, 1), (1, 0)):
+      np.testing.assert_allclose(obs_m[group][a][:-2], sign * obs[group][b][:-2], atol=1e-5,
+                                 err_msg=f"{group}: agent {a} of mirror vs agent {b}")
+      np.testing.assert_array_equal(obs_m[group][a][-2:], obs[group][a][-2:])  # id: by slot
+    np.testing.assert_array_equal(obs[group][:, -2:], np.eye(2))
+
+
+def test_gait_reference_and_stance(dr_env):
+  """Swing leg bends (hip -, knee +, ankle -) with amplitude 0.17 x multipliers; standing: none."""
+  # Phase 0.25: left leg angle pi/2, sin = 1 (full swing); right leg sin(3pi/2) = -1 (stance).
+  q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.25), jnp.asarray(0.0)))
+  np.testing.assert_allclose(q_ref[:6], 0.17 * np.array([-1, 0, 0, 2, -1, 0]), atol=1e-6)
+  np.testing.assert_allclose(q_ref[6:], 0.0, atol=1e-6)  # right leg; arms held in bipedal
+  np.testing.assert_array_equal(stance, [0.0, 1.0])
+  q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.25), jnp.asarray(1.0)))
+  np.testing.assert_allclose(q_ref, 0.0)
+  np.testing.assert_array_equal(stance, [1.0, 1.0])
+
+
+# ------------------------------------------------------------------------ domain randomization
+RANGES = {  # DomainParams field -> DomainRandConfig field
+    "friction": "friction", "mass_scale": "mass_scale", "com_offset": "com_offset",
+    "gravity": "gravity", "joint_damping": "joint_damping", "joint_friction": "joint_friction",
+    "armature": "armature", "kp_scale": "kp_scale", "kd_scale": "kd_scale"}
+
+
+def test_randomize_sample_in_ranges_and_varies():
+  """vmapped sample over 256 keys: every draw inside its configured range, different across envs."""
+  cfg = randomize.DomainRandConfig()
+  n, nbody, nj = 256, 25, 20
+  params = jax.jit(jax.vmap(lambda k: randomize.sample(k, cfg, nbody, nj)))(
+      jax.random.split(jax.random.key(0), n))
+  assert set(RANGES) == {f for f in params.__dataclass_fields__}
+  for field, cfg_field in RANGES.items():
+    lo, hi = getattr(cfg, cfg_field)
+    v = np.asarray(getattr(params, field))
+    assert v.shape[0] == n
+    assert v.min() >= lo and v.max() <= hi, field
+    assert np.all(v.std(axis=0) > 0.1 * (hi - lo) / np.sqrt(12)), f"{field} does not vary"
+    assert len(np.unique(v.reshape(n, -1), axis=0)) > 0.95 * n, f"{field} repeats across envs"
+  rows = np.concatenate([np.asarray(x).reshape(n, -1) for x in jax.tree.leaves(params)], axis=1)
+  assert len(np.unique(rows, axis=0)) == n  # no two envs get the same robot
+
+
+def test_randomize_disabled_is_nominal():
+  """enabled=False: every key gives the nominal robot (friction 1, scales 1, g 9.81, ...)."""
+  params = jax.vmap(lambda k: randomize.sample(k, DR_OFF, 25, 20))(
+      jax.random.split(jax.random.key(0), 3))
+  nominal = randomize.nominal(25, 20)
+  for i in range(3):
+    chex.assert_trees_all_close(jax.tree.map(lambda x: x[i], params), nominal)
+  assert float(nominal.gravity) == pytest.approx(9.81)
+  assert float(nominal.friction) == 1.0
+
+
+def test_randomize_apply_writes_fields(dr_env):
+  """apply: body_mass/inertia scaled, gravity set, sole-floor pair_friction set, torso CoM moved,
+  joint damping/frictionloss/armature written at the actuated dofs; nothing else touched."""
+  params = randomize.sample(jax.random.key(3), dr_env.config.randomization,
+                            dr_env.mj_model.nbody, dr_env.n_joints)
+  base, model = dr_env.mjx_model, dr_env.model_for(params)
+  m = dr_env.mj_model
+  np.testing.assert_allclose(model.body_mass, base.body_mass * params.mass_scale, rtol=1e-6)
+  np.testing.assert_allclose(model.body_inertia, base.body_inertia * params.mass_scale[:, None],
+                             rtol=1e-6)
+  np.testing.assert_allclose(model.opt.gravity, [0.0, 0.0, -float(params.gravity)], rtol=1e-6)
+  soles = np.array([m.pair(f"{s}_sole_{k}_floor").id for s in ("left", "right")
+                    for k in range(len(T1.sole_points))])
+  others = np.array([i for i in range(m.npair) if i not in soles])
+  np.testing.assert_allclose(model.pair_friction[soles, :2], float(params.friction), rtol=1e-6)
+  np.testing.assert_allclose(model.pair_friction[soles, 2:], base.pair_friction[soles, 2:])
+  np.testing.assert_allclose(model.pair_friction[others], base.pair_friction[others])
+  root = m.body(T1.root_body).id
+  np.testing.assert_allclose(model.body_ipos[root], base.body_ipos[root] + params.com_offset,
+                             atol=1e-7)
+  dofs = np.array([m.jnt_dofadr[m.joint(j).id] for j in T1.joints])
+  np.testing.assert_allclose(model.dof_damping[dofs], params.joint_damping, rtol=1e-6)
+  np.testing.assert_allclose(model.dof_frictionloss[dofs], params.joint_friction, rtol=1e-6)
+  np.testing.assert_allclose(model.dof_armature[dofs], params.armature, rtol=1e-6)
+  np.testing.assert_allclose(model.dof_damping[:6], base.dof_damping[:6])  # free joint untouched
+
+
+# ------------------------------------------------------------------------------ MJX rollouts
+def test_reset_state(random_rollout, dr_env):
+  """Batched reset: obs shapes, home pose, step 0, one metric per reward term, DR per env."""
+  state0, _, _ = random_rollout
+  chex.assert_shape(state0.obs["legs"], (4, 2, 32))
+  chex.assert_shape(state0.obs["critic"], (4, 106))
+  np.testing.assert_allclose(state0.pipeline_state.qpos,
+                             np.broadcast_to(dr_env.mj_model.key("home").qpos, (4, dr_env.mj_model.nq)))
+  np.testing.assert_array_equal(state0.info["step"], 0)
+  assert set(state0.metrics) == {f"reward/{t}" for t in rewards.TERMS}
+  assert len(np.unique(state0.info["dr"].friction)) == 4
+
+
+def test_standing_default_pose_zero_action(standing_rollout):
+  """T1 at the default pose, zero action, DR off: upright for 2 s (no fall, z within 3 cm of
+  0.665, |roll| < 0.1, pitch < 0.1 on average and never above 0.15 rad)."""
+  _, _, tr = standing_rollout
+  assert tr["done"].shape == (STAND_STEPS, 2)
+  assert not tr["done"].any() and not tr["fall"].any()
+  assert np.all(np.abs(tr["z"] - T1.home_height) < 0.03), tr["z"].min(0)
+  roll, pitch = tr["euler"][..., 0], tr["euler"][..., 1]
+  assert np.all(np.abs(roll) < 0.1), np.abs(roll).max()
+  # Measured: the CoM is 2.4 cm ahead of the ankles and the ankle PD (kp 150) gives a bit, so the
+  # T1 leans ~0.055 rad forward and rocks lightly damped on its ankles (peak 0.107 at t = 1.5 s,
+  # 0.088 at t = 4.5 s), never falling. Hence the mean / peak bounds rather than |pitch| < 0.1.
+  assert np.abs(pitch).mean() < 0.1 and np.abs(pitch).max() < 0.15, np.abs(pitch).max()
+  np.testing.assert_array_equal(tr["push"], 0.0)  # DR off: no pushes
+  np.testing.assert_array_equal(tr["step"][-1], STAND_STEPS)
+
+
+def test_random_rollout_is_finite(random_rollout, dr_env):
+  """200 steps of uniform random actions with DR on: no NaN anywhere, finite reward and obs."""
+  _, last, tr = random_rollout
+  for name in ("qpos", "qvel", "reward", "euler"):
+    assert np.all(np.isfinite(tr[name])), name
+  for name, obs in tr["obs"].items():
+    assert np.all(np.isfinite(obs)), name
+  chex.assert_shape(tr["obs"]["legs"], (RANDOM_STEPS, 4, 2, 32))
+  assert np.all(np.isfinite(np.asarray(last.pipeline_state.qpos)))
+  # Applied torques within the motor limits; pushes within the configured ranges.
+  tau_max = np.array([T1.torque_limit[j] for j in T1.joints])
+  assert np.all(np.abs(tr["torque"]) <= tau_max + 1e-4)
+  assert np.all(np.abs(tr["push"][..., :2]) <= 20.0) and np.all(np.abs(tr["push"][..., 2:]) <= 5.0)
+  assert np.any(tr["push"] != 0.0)
+
+
+def test_done_and_auto_reset(random_rollout, dr_env):
+  """Episodes end by fall or by time-out at step 50; a done step returns a fresh state (step 0,
+  home pose, zero velocity) with truncation = 1 exactly on time-outs."""
+  _, _, tr = random_rollout
+  done, step, trunc, fall = tr["done"], tr["step"], tr["truncation"], tr["fall"]
+  home = dr_env.mj_model.key("home").qpos
+  assert trunc.any(), "no episode reached the 50-step time-out"
+  np.testing.assert_array_equal(done, np.maximum(trunc, fall))
+  assert not np.any((trunc > 0) & (fall > 0))
+  np.testing.assert_array_equal(step[done > 0], 0)
+  np.testing.assert_allclose(tr["qpos"][done > 0], np.broadcast_to(home, tr["qpos"][done > 0].shape))
+  np.testing.assert_array_equal(tr["qvel"][done > 0], 0.0)
+  # Step counter: +1 each step, previous counter 49 exactly when truncated.
+  prev = np.concatenate([np.zeros((1, 4), step.dtype), step[:-1]], axis=0)
+  np.testing.assert_array_equal(step[done == 0], prev[done == 0] + 1)
+  # A fall on the last step counts as a fall, not a time-out.
+  np.testing.assert_array_equal(trunc > 0, (done > 0) & (fall == 0) & (prev == EPISODE_LENGTH - 1))
+  assert step.max() < EPISODE_LENGTH
+
+
+def test_metrics_sum_to_reward(random_rollout):
+  """metrics hold reward/<term> for all 16 terms; reward = max(sum of terms, 0) (only_positive)."""
+  _, _, tr = random_rollout
+  assert set(tr["metrics"]) == {f"reward/{t}" for t in rewards.TERMS}
+  assert len(tr["metrics"]) == 16
+  total = sum(tr["metrics"].values())
+  np.testing.assert_allclose(tr["reward"], np.maximum(total, 0.0), rtol=1e-5, atol=1e-6)
+  assert np.all(tr["reward"] >= 0.0)
+  assert np.any(total > 0.0)  # the unclipped branch is exercised too
