@@ -1,0 +1,237 @@
+"""``python -m experiments.benchmark [--quick]``: throughput of physics, env and training, in one process.
+
+Prints one JSON object and writes it to ``benchmark.json``: bare ``mjx.step`` physics steps/s on the
+env's own model and batch, the batched env step, full training (rollout + GAE + updates) for MASH,
+our single-agent PPO and Brax's own PPO trainer on the same env, batch, rollout length and network
+sizes, compile times, and peak memory. Because every figure comes from one process, their ratios
+hold on a noisy machine.
+
+``--sweep batch`` measures throughput against batch size and writes ``benchmarks/scaling_batch.*``;
+``--sweep physics`` measures each solver setting tried (physics steps/s, standing drift).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+from experiments import common
+
+
+def _peak_rss_mb() -> float:
+  return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def train_throughput(env, train_cfg, calls: int) -> tuple[float, float]:
+  """(env steps/s of our training loop, compile seconds of one training call)."""
+  import jax
+  from mash import train as train_lib
+  trainer = train_lib.make_train(train_cfg, env)
+  state = trainer.init(jax.random.PRNGKey(0))
+  t0 = time.perf_counter()
+  state, m = trainer.train_epoch(state)
+  jax.block_until_ready(m)
+  first = time.perf_counter() - t0
+  best = float("inf")
+  for _ in range(calls):
+    t0 = time.perf_counter()
+    state, m = trainer.train_epoch(state)
+    jax.block_until_ready(m)
+    best = min(best, time.perf_counter() - t0)
+  steps = train_cfg.num_envs * train_cfg.unroll_length * train_cfg.iterations_per_call
+  return steps / best, first - best
+
+
+def brax_ppo_throughput(env_cfg, train_cfg, calls: int) -> tuple[float, float]:
+  """Brax's PPO trainer on our env (same batch, unroll, epochs, minibatches, network sizes)."""
+  import functools
+  from brax.training.agents.ppo import networks as ppo_networks
+  from brax.training.agents.ppo import train as ppo_train
+  from mash import brax_compat
+  env = brax_compat.BraxView(env_cfg)
+  per_epoch = train_cfg.num_envs * train_cfg.unroll_length * train_cfg.iterations_per_call
+  stamps = []
+  factory = functools.partial(
+      ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=train_cfg.actor_hidden,
+      value_hidden_layer_sizes=train_cfg.critic_hidden, policy_obs_key="state",
+      value_obs_key="privileged_state")
+  # Brax runs num_evals - 1 training epochs of num_timesteps / (num_evals - 1) steps each.
+  num_evals = calls + 2
+  ppo_train.train(
+      environment=env, num_timesteps=per_epoch * (num_evals - 1), num_envs=train_cfg.num_envs,
+      episode_length=1000, unroll_length=train_cfg.unroll_length,
+      batch_size=train_cfg.num_envs * train_cfg.unroll_length // train_cfg.num_minibatches,
+      num_minibatches=train_cfg.num_minibatches, num_updates_per_batch=train_cfg.num_epochs,
+      learning_rate=train_cfg.learning_rate, entropy_cost=train_cfg.entropy_coef,
+      discounting=train_cfg.gamma, gae_lambda=train_cfg.gae_lambda,
+      normalize_observations=True, network_factory=factory, num_evals=num_evals,
+      run_evals=False, progress_fn=lambda step, metrics: stamps.append(time.perf_counter()),
+      seed=0)
+  epochs = [b - a for a, b in zip(stamps[:-1], stamps[1:])]
+  steady = min(epochs[1:]) if len(epochs) > 1 else epochs[0]
+  return per_epoch / steady, epochs[0] - steady
+
+
+def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
+  import jax
+  from mash import config as train_config
+  from mash import env as env_lib
+  from mash import throughput
+  batch = batch or (256 if quick else 1024)
+  unroll = 24
+  iters = 2 if quick else 4
+  env_cfg = env_lib.EnvConfig(task=task)
+  env = env_lib.MashEnv(env_cfg)
+  result = {"device": jax.devices()[0].device_kind, "backend": jax.default_backend(),
+            "n_devices": jax.device_count(), "batch": batch, "substeps": env.n_substeps,
+            "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+  steps = 20 if quick else 50
+  print(f"[1/5] bare mjx.step, batch {batch}", file=sys.stderr, flush=True)
+  result["physics_steps_per_s"], t = throughput.bare_physics(env, batch, steps)
+  print(f"[2/5] env step, batch {batch}", file=sys.stderr, flush=True)
+  env_sps, t_env = throughput.env_steps(env, batch, steps)
+  result["env_steps_per_s"] = env_sps
+  result["env_physics_equivalent_per_s"] = env_sps * env.n_substeps
+  train_cfg = dataclasses.replace(
+      train_config.TrainConfig(), num_envs=batch, unroll_length=unroll, iterations_per_call=iters,
+      actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64))
+  result["unroll_length"] = unroll
+  result["network"] = {"actor": train_cfg.actor_hidden, "critic": train_cfg.critic_hidden}
+  result["train_env_steps_per_s"], result["compile_s"] = {}, {}
+  for i, (name, partition) in enumerate((("mash", "mash"), ("ppo", "ppo"))):
+    print(f"[{3 + i}/5] training: {name}", file=sys.stderr, flush=True)
+    e = env_lib.MashEnv(dataclasses.replace(env_cfg, partition=partition))
+    sps, comp = train_throughput(e, train_cfg, calls=1 if quick else 2)
+    result["train_env_steps_per_s"][name] = sps
+    result["compile_s"][name] = comp
+  print("[5/5] training: brax_ppo", file=sys.stderr, flush=True)
+  sps, comp = brax_ppo_throughput(env_cfg, train_cfg, calls=1 if quick else 2)
+  result["train_env_steps_per_s"]["brax_ppo"] = sps
+  result["compile_s"]["brax_ppo"] = comp
+  tr = result["train_env_steps_per_s"]
+  result["ratios"] = {
+      "env_vs_physics": result["env_physics_equivalent_per_s"] / result["physics_steps_per_s"],
+      "mash_train_vs_env": tr["mash"] / env_sps,
+      "mash_vs_ppo": tr["mash"] / tr["ppo"],
+      "mash_vs_brax_ppo": tr["mash"] / tr["brax_ppo"],
+  }
+  result["peak_rss_mb"] = _peak_rss_mb()
+  return result
+
+
+def sweep_batch(batches: list[int], task: str) -> list[dict]:
+  """Physics, env and MASH training throughput per batch size (one process)."""
+  import jax
+  from mash import config as train_config
+  from mash import env as env_lib
+  from mash import throughput
+  env = env_lib.MashEnv(env_lib.EnvConfig(task=task))
+  rows = []
+  for b in batches:
+    print(f"batch {b}", file=sys.stderr, flush=True)
+    phys, _ = throughput.bare_physics(env, b, 10, repeats=1)
+    envs, _ = throughput.env_steps(env, b, 10, repeats=1)
+    cfg = dataclasses.replace(train_config.TrainConfig(), num_envs=b, unroll_length=16,
+                              iterations_per_call=1, actor_hidden=(256, 128, 64),
+                              critic_hidden=(256, 128, 64))
+    train_sps, _ = train_throughput(env, cfg, calls=1)
+    rows.append({"batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
+                 "train_env_steps_per_s": train_sps, "device": jax.devices()[0].device_kind})
+  return rows
+
+
+def sweep_physics(task: str) -> list[dict]:
+  """Each solver setting: MJX physics steps/s (batch 256) and standing drift over 10 s (MuJoCo C,
+  same model and options, PD at the default pose, zero action)."""
+  import mujoco
+  import numpy as np
+  from mash import env as env_lib
+  from mash import robots
+  from mash import throughput
+  settings = [(0.005, 1), (0.005, 3), (0.004, 1), (0.002, 3)]
+  rows = []
+  for sim_dt, iterations in settings:
+    print(f"sim_dt {sim_dt}, iterations {iterations}", file=sys.stderr, flush=True)
+    physics = robots.PhysicsConfig(sim_dt=sim_dt, iterations=iterations)
+    env = env_lib.MashEnv(env_lib.EnvConfig(task=task, physics=physics))
+    phys, _ = throughput.bare_physics(env, 256, 10, repeats=1)
+    spec, m = env.spec, env.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    q0 = np.array([spec.default_pose[j] for j in spec.joints])
+    kp = np.array([spec.kp[j] for j in spec.joints])
+    kd = np.array([spec.kd[j] for j in spec.joints])
+    lim = np.array([spec.torque_limit[j] for j in spec.joints])
+    start = d.qpos[:3].copy()
+    for _ in range(int(10.0 / sim_dt)):
+      d.ctrl[env._act] = np.clip(kp * (q0 - d.qpos[env._qadr]) - kd * d.qvel[env._dadr], -lim, lim)
+      mujoco.mj_step(m, d)
+    rows.append({"sim_dt": sim_dt, "iterations": iterations, "substeps": env.n_substeps,
+                 "physics_steps_per_s": phys, "control_steps_per_s": phys / env.n_substeps,
+                 "standing_drift_xy_m": float(np.linalg.norm(d.qpos[:2] - start[:2])),
+                 "standing_height_change_m": float(d.qpos[2] - start[2]),
+                 "upright_after_10s": bool(d.qpos[2] > 0.6)})
+  return rows
+
+
+def _write_table(rows: list[dict], stem: Path, x: str) -> None:
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  stem.parent.mkdir(parents=True, exist_ok=True)
+  stem.with_suffix(".json").write_text(json.dumps(rows, indent=2))
+  keys = [k for k in rows[0] if k != x and isinstance(rows[0][k], (int, float))]
+  lines = ["| " + " | ".join([x] + keys) + " |", "|" + "---|" * (len(keys) + 1)]
+  for r in rows:
+    lines.append("| " + " | ".join([str(r[x])] + [f"{r[k]:,.3g}" if isinstance(r[k], float)
+                                                    else str(r[k]) for k in keys]) + " |")
+  stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+  if x == "batch":
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for k in ("physics_steps_per_s", "env_steps_per_s", "train_env_steps_per_s"):
+      ax.plot([r[x] for r in rows], [r[k] for r in rows], "o-", label=k)
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("batch (envs)")
+    ax.set_ylabel("steps / s")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(stem.with_suffix(".png"), dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+  p = common.Parser(prog="python -m experiments.benchmark", description=__doc__.splitlines()[0])
+  p.add_argument("--quick", action="store_true", help="smaller batch and fewer repeats (< 15 min CPU)")
+  p.add_argument("--batch", type=int, default=None)
+  p.add_argument("--task", default="bipedal")
+  p.add_argument("--out", default="benchmark.json")
+  p.add_argument("--sweep", default=None, help="batch | physics")
+  p.add_argument("--batches", default="64,256,1024,4096")
+  args = p.parse_args(argv)
+  with common.user_errors():
+    if args.task not in ("bipedal", "armswing"):
+      raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
+    if args.sweep == "batch":
+      rows = sweep_batch([int(b) for b in args.batches.split(",")], args.task)
+      _write_table(rows, Path("benchmarks") / "scaling_batch", "batch")
+      print(json.dumps(rows, indent=2))
+      return
+    if args.sweep == "physics":
+      rows = sweep_physics(args.task)
+      _write_table(rows, Path("benchmarks") / "physics_settings", "sim_dt")
+      print(json.dumps(rows, indent=2))
+      return
+    if args.sweep is not None:
+      raise common.UserError(f"--sweep '{args.sweep}' is unknown; expected batch or physics")
+    result = run_benchmark(args.quick, args.batch, args.task)
+    Path(args.out).write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,104 @@
+"""``python -m experiments.evaluate --run DIR``: the paper's metrics of a trained run.
+
+Deterministic rollouts of the latest checkpoint at a fixed forward command (domain randomization
+on) -> ``DIR/eval/metrics.json``, ``DIR/eval/trajectories.npz`` and ``DIR/eval/hip_pitch.png``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from experiments import common
+
+
+def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
+  """Evaluates every seed of a run; returns (and writes) the metrics."""
+  from mash import env as env_lib, evaluation, metrics as metrics_lib, networks, runs
+
+  eval_cfg = eval_cfg or evaluation.EvalConfig()
+  run = runs.load_run(run_dir)
+  cfg = run.config
+  env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, eval_cfg))
+  policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
+
+  progress = runs.read_progress(run_dir, per_seed=True)
+  per_seed, trajs = [], []
+  for s in range(cfg.seeds):
+    params = runs.seed_slice(run.params, s, cfg.seeds)
+    nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
+    traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), eval_cfg)
+    curve = progress["episode_reward"][progress["seed"] == s] if progress else None
+    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve))
+    traj["seed"] = np.full(traj["alive"].shape[0], s)
+    trajs.append(traj)
+
+  keys = ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed")
+  result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys if per_seed[0][k] is not None}
+  result["T_conv"] = result.get("T_conv")
+  result["command_vx"] = eval_cfg.command_vx
+  result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"]
+                   for k in keys if per_seed[0][k] is not None}
+  result["per_seed"] = per_seed
+  result["eval_config"] = eval_cfg.__dict__
+  result["smoothing_window"] = None
+  if progress:
+    _, info = metrics_lib.convergence_iteration(progress["episode_reward"][progress["seed"] == 0])
+    result["smoothing_window"] = info["window"]
+  if write:
+    out = Path(run_dir) / "eval"
+    out.mkdir(exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
+    np.savez_compressed(out / "trajectories.npz", dt=trajs[0]["dt"], **merged)
+    plot_hip_pitch(merged, float(trajs[0]["dt"]), out / "hip_pitch.png", cfg.algo)
+  return result
+
+
+def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float = 3.0) -> None:
+  """The paper's joint-position figure: left/right hip pitch vs the temporal director's reference."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  n = min(int(seconds / dt), traj["hip_pitch"].shape[1])
+  t = np.arange(n) * dt
+  fig, axes = plt.subplots(2, 1, figsize=(7, 4), sharex=True)
+  for i, side in enumerate(("left", "right")):
+    axes[i].plot(t, traj["hip_pitch"][0, :n, i], label=label)
+    axes[i].plot(t, traj["hip_pitch_ref"][0, :n, i], "--", color="green", label="reference")
+    axes[i].set_ylabel(f"{side} hip pitch (rad)")
+    axes[i].grid(alpha=0.3)
+  axes[0].legend(loc="upper right")
+  axes[1].set_xlabel("time (s)")
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
+
+
+def main(argv=None) -> None:
+  p = common.Parser(prog="python -m experiments.evaluate", description=__doc__.splitlines()[0])
+  p.add_argument("--run", required=True, help="run directory")
+  p.add_argument("--episodes", type=int, default=32)
+  p.add_argument("--seconds", type=float, default=20.0, help="episode duration")
+  p.add_argument("--command-vx", type=float, default=0.4, help="forward command (m/s)")
+  p.add_argument("--no-dr", action="store_true", help="evaluate without domain randomization")
+  args = p.parse_args(argv)
+  with common.user_errors():
+    from mash import evaluation
+    if args.episodes < 1 or args.seconds <= 0:
+      raise common.UserError("--episodes must be >= 1 and --seconds > 0")
+    cfg = evaluation.EvalConfig(command_vx=args.command_vx, num_episodes=args.episodes,
+                                episode_s=args.seconds, randomization=not args.no_dr)
+    print(f"evaluating {args.run}: {args.episodes} episodes x {args.seconds:g} s at vx = "
+          f"{args.command_vx} m/s, DR {'off' if args.no_dr else 'on'}", flush=True)
+    result = evaluate_run(args.run, cfg)
+    shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
+                                    "fall_rate", "forward_speed", "command_vx")}
+    print(json.dumps(shown, indent=2))
+    print(f"wrote {args.run}/eval/metrics.json, trajectories.npz, hip_pitch.png")
+
+
+if __name__ == "__main__":
+  main()

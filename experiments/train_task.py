@@ -1,0 +1,55 @@
+"""``python -m experiments.bipedal`` / ``experiments.armswing``: train MASH or the PPO baseline.
+
+Examples:
+  python -m experiments.bipedal                          # MASH, preset from the backend
+  python -m experiments.bipedal --algo ppo --seeds 3 --preset smoke --out runs/ppo_smoke
+  python -m experiments.armswing --set train.learning_rate=5e-4 --set env.action_scale=0.3
+  python -m experiments.bipedal --resume runs/bipedal_mash_cpu_20261125-120000
+"""
+
+from __future__ import annotations
+
+import time
+
+from experiments import common
+
+
+def main(task: str, argv: list[str] | None = None) -> None:
+  p = common.Parser(prog=f"python -m experiments.{task}", description=__doc__.splitlines()[0],
+                    formatter_class=__import__("argparse").RawDescriptionHelpFormatter,
+                    epilog="\n".join(__doc__.splitlines()[2:]))
+  p.add_argument("--algo", default="mash", help="mash (limb agents, MAPPO) | ppo (single agent)")
+  p.add_argument("--preset", default=None, help="smoke | cpu | gpu (default: from the backend)")
+  p.add_argument("--seeds", type=int, default=1, help="independent seeds trained in one jit")
+  p.add_argument("--out", default=None, help="run directory (default: runs/<task>_<algo>_<preset>_<time>)")
+  p.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
+  p.add_argument("--ablation", default="none", help="one of mash.experiment.ABLATIONS")
+  p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                 help="override a config field, e.g. train.learning_rate=1e-3 (repeatable)")
+  p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  args = p.parse_args(argv)
+
+  with common.user_errors():
+    from mash import experiment, runs
+    preset, backend = common.default_preset()
+    chosen = "given" if args.preset else f"chosen from the backend '{backend}'"
+    if args.resume:
+      cfg = runs.load_config(args.resume)
+      if cfg.task != task:
+        raise common.UserError(f"--resume {args.resume} is a '{cfg.task}' run, not '{task}'")
+      print(f"resuming {args.resume}: task {cfg.task}, algo {cfg.algo}, preset {cfg.preset}",
+            flush=True)
+      summary = runs.train(cfg, args.resume, resume=True, show_progress=not args.no_progress)
+      out = args.resume
+    else:
+      preset = args.preset or preset
+      cfg = experiment.make_config(task, args.algo, preset, args.seeds, args.ablation, args.set)
+      out = args.out or f"runs/{task}_{cfg.algo}_{preset}_{time.strftime('%Y%m%d-%H%M%S')}"
+      print(f"preset: {preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
+            f"{cfg.train.num_envs} envs x {cfg.train.unroll_length} steps x "
+            f"{cfg.train.num_iterations} iterations -> {out}", flush=True)
+      summary = runs.train(cfg, out, show_progress=not args.no_progress)
+    state = "interrupted at" if summary["interrupted"] else "finished"
+    print(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
+          f"{summary['wall_s']:.0f} s, final episode reward {summary['final_episode_reward']}; "
+          f"run in {out}", flush=True)

@@ -1,0 +1,300 @@
+"""Training runs on disk: the host loop around the jitted trainer.
+
+A run directory holds ``config.json`` (the resolved :class:`ExperimentConfig`), ``progress.csv``
+(one row per iteration, mean over seeds; ``progress_seeds.csv`` has one row per seed),
+TensorBoard event files, Orbax ``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
+Between jitted calls the host only logs, checkpoints and draws the progress bar. SIGINT/SIGTERM
+end the run after the call in flight, with a complete checkpoint to ``--resume`` from.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any, Iterator, NamedTuple
+
+import jax
+import numpy as np
+
+from mash import checkpoint
+from mash import experiment
+from mash import train as train_lib
+
+BASE_COLUMNS = ("iteration", "env_steps", "wall_s", "episode_reward", "episode_length")
+
+
+class RunError(ValueError):
+  """A run directory that cannot be used as asked (one line, names the directory)."""
+
+
+def is_run(path: Path) -> bool:
+  return (path / "config.json").is_file()
+
+
+def load_config(run_dir: str | os.PathLike) -> experiment.ExperimentConfig:
+  """The config of an existing run; RunError when ``run_dir`` is not one."""
+  path = Path(run_dir)
+  if not path.is_dir():
+    raise RunError(f"run directory '{path}' does not exist")
+  if not is_run(path):
+    raise RunError(f"'{path}' is not a run directory (no config.json)")
+  try:
+    return experiment.from_json((path / "config.json").read_text())
+  except experiment.ConfigError as e:
+    raise RunError(f"'{path}/config.json': {e}") from None
+
+
+def build_trainer(cfg: experiment.ExperimentConfig):
+  """The (seed-vmapped when ``cfg.seeds > 1``) trainer of a config."""
+  env = experiment.make_env(cfg)
+  trainer = train_lib.make_train(cfg.train, env)
+  if cfg.seeds > 1:
+    trainer = train_lib.make_seed_trainer(trainer)
+  return trainer
+
+
+def init_state(trainer, cfg: experiment.ExperimentConfig):
+  if cfg.seeds > 1:
+    return trainer.init(train_lib.seed_keys(cfg.train.seed, cfg.seeds))
+  return trainer.init(jax.random.PRNGKey(cfg.train.seed))
+
+
+def state_shapes(trainer, cfg: experiment.ExperimentConfig):
+  """Shapes and dtypes of the train state, without running ``init`` (restore template)."""
+  if cfg.seeds > 1:
+    return jax.eval_shape(trainer.init, train_lib.seed_keys(cfg.train.seed, cfg.seeds))
+  return jax.eval_shape(trainer.init, jax.random.PRNGKey(cfg.train.seed))
+
+
+class LoadedRun(NamedTuple):
+  """A trained run ready to act.
+
+  Attributes:
+    config: the run's experiment config.
+    trainer: its trainer (networks, env).
+    params: parameters of every seed (leading seed axis when ``config.seeds > 1``).
+    normalizer: observation statistics (same layout), or None when not normalizing.
+    iteration: the checkpoint's training iteration.
+  """
+
+  config: experiment.ExperimentConfig
+  trainer: Any
+  params: Any
+  normalizer: Any
+  iteration: int
+
+
+def load_run(run_dir: str | os.PathLike) -> LoadedRun:
+  """Loads the latest complete checkpoint of a run; RunError when there is none."""
+  cfg = load_config(run_dir)
+  trainer = build_trainer(cfg)
+  restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", state_shapes(trainer, cfg))
+  if restored is None:
+    raise RunError(f"'{run_dir}' has no complete checkpoint")
+  state = restored.state
+  norm = state.normalizer if cfg.train.normalize_observations else None
+  return LoadedRun(cfg, trainer, state.params, norm, int(restored.step))
+
+
+def seed_slice(tree: Any, seed: int, seeds: int) -> Any:
+  """One seed's part of a (possibly seed-batched) pytree."""
+  return tree if seeds == 1 else jax.tree.map(lambda x: x[seed], tree)
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[dict[str, bool]]:
+  """Turns SIGINT/SIGTERM into a flag the loop checks between jitted calls."""
+  flag = {"stop": False}
+
+  def handler(signum, frame):
+    if flag["stop"]:  # a second signal: stop now
+      raise KeyboardInterrupt
+    flag["stop"] = True
+    print(f"\nsignal {signal.Signals(signum).name}: finishing the current call and saving a "
+          "checkpoint (send again to abort)", flush=True)
+
+  old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+  try:
+    yield flag
+  finally:
+    for s, h in old.items():
+      signal.signal(s, h)
+
+
+def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_iteration: int,
+          wall_s: float, seeds: int) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
+  """Turns one call's metrics into progress rows (mean over seeds) and per-seed rows."""
+  keys = ["episode_reward", "episode_length"] + sorted(k for k in metrics if k.startswith("reward/"))
+  extra = sorted(k for k in metrics if k not in keys)
+  per_seed = {k: np.asarray(metrics[k]).reshape(seeds, -1) for k in keys + extra}
+  n = per_seed["episode_reward"].shape[1]
+  rows, seed_rows = [], []
+  for i in range(n):
+    it = first_iteration + i + 1
+    base = {"iteration": it, "env_steps": it * env_steps_per_iteration, "wall_s": round(wall_s, 3)}
+    rows.append({**base, **{k: float(per_seed[k][:, i].mean()) for k in keys + extra}})
+    for s in range(seeds):
+      seed_rows.append({**base, "seed": s, **{k: float(per_seed[k][s, i]) for k in keys}})
+  return rows, seed_rows
+
+
+class _CsvLog:
+  """Appends rows to a CSV, writing the header once; on resume drops rows past ``keep_until``."""
+
+  def __init__(self, path: Path, keep_until: int | None):
+    self.path = path
+    self.header: list[str] | None = None
+    if path.exists() and keep_until is not None:
+      with path.open() as f:
+        reader = csv.DictReader(f)
+        self.header = reader.fieldnames
+        kept = [r for r in reader if int(r["iteration"]) <= keep_until]
+      with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=self.header)
+        w.writeheader()
+        w.writerows(kept)
+
+  def write(self, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+      return
+    new = self.header is None
+    if new:
+      self.header = list(rows[0])
+    with self.path.open("a", newline="") as f:
+      w = csv.DictWriter(f, fieldnames=self.header, extrasaction="ignore")
+      if new:
+        w.writeheader()
+      w.writerows(rows)
+
+
+def read_progress(run_dir: str | os.PathLike, per_seed: bool = False) -> dict[str, np.ndarray]:
+  """Columns of ``progress.csv`` (or ``progress_seeds.csv``) as float arrays."""
+  name = "progress_seeds.csv" if per_seed else "progress.csv"
+  with (Path(run_dir) / name).open() as f:
+    rows = list(csv.DictReader(f))
+  if not rows:
+    return {}
+  return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+
+
+def plot_reward_curve(run_dir: Path) -> None:
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  p = read_progress(run_dir)
+  if not p:
+    return
+  fig, ax = plt.subplots(figsize=(6, 3.5))
+  ax.plot(p["iteration"], p["episode_reward"], label="mean episode reward")
+  ax.set_xlabel("iteration")
+  ax.set_ylabel("episode reward")
+  ax.grid(alpha=0.3)
+  fig.tight_layout()
+  fig.savefig(run_dir / "reward_curve.png", dpi=120)
+  plt.close(fig)
+
+
+def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
+          show_progress: bool = True, max_calls: int | None = None) -> dict[str, Any]:
+  """Trains ``cfg`` into ``out_dir`` (or continues the run there when ``resume``).
+
+  Args:
+    cfg: the resolved experiment config (on resume, the run's own config).
+    out_dir: the run directory.
+    resume: continue from the latest complete checkpoint in ``out_dir``.
+    show_progress: draw a progress bar.
+    max_calls: stop after this many jitted calls (tests, interrupted-run demos).
+
+  Returns:
+    The summary written to ``summary.json``.
+  """
+  from tqdm import tqdm
+  from tensorboardX import SummaryWriter
+
+  out = Path(out_dir)
+  if resume:
+    cfg = load_config(out)
+  elif out.exists() and is_run(out):
+    raise RunError(f"'{out}' already holds a run; pass --resume {out} to continue it, or choose "
+                   "another --out")
+  out.mkdir(parents=True, exist_ok=True)
+  derived = train_lib.derived(cfg.train)
+
+  trainer = build_trainer(cfg)
+  start_iteration = 0
+  if resume:
+    restored = checkpoint.restore_latest(out / "checkpoints", state_shapes(trainer, cfg))
+    if restored is None:
+      raise RunError(f"'{out}' has no complete checkpoint to resume from")
+    state = restored.state
+    start_iteration = int(np.asarray(jax.device_get(state.iteration)).reshape(-1)[0])
+  else:
+    state = init_state(trainer, cfg)
+    (out / "config.json").write_text(experiment.to_json(cfg))
+  manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
+
+  progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
+  seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
+  writer = SummaryWriter(str(out / "tensorboard"))
+  total_calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
+  if max_calls is not None:
+    total_calls = min(total_calls, max_calls)
+  bar = tqdm(total=cfg.train.num_iterations, initial=start_iteration, disable=not show_progress,
+             unit="it", dynamic_ncols=True)
+  previous = {}
+  if (out / "summary.json").exists() and resume:
+    previous = json.loads((out / "summary.json").read_text())
+  wall0 = time.perf_counter() - float(previous.get("wall_s", 0.0))
+  compile_s, call_s, iteration = None, [], start_iteration
+  stopped = False
+  with _stop_on_signals() as flag:
+    for call in range(total_calls):
+      t0 = time.perf_counter()
+      state, metrics = trainer.train_epoch(state)
+      metrics = jax.device_get(metrics)
+      dt = time.perf_counter() - t0
+      if compile_s is None:
+        compile_s = dt
+      else:
+        call_s.append(dt)
+      rows, seed_rows = _rows(metrics, iteration, derived.env_steps_per_iteration,
+                              time.perf_counter() - wall0, cfg.seeds)
+      iteration = rows[-1]["iteration"]
+      progress.write(rows)
+      seed_log.write(seed_rows)
+      for r in rows:
+        for k, v in r.items():
+          if k not in ("iteration", "env_steps", "wall_s"):
+            writer.add_scalar(k, v, r["iteration"])
+      last = call == total_calls - 1 or flag["stop"]
+      if (call + 1) % cfg.checkpoint_every == 0 or last:
+        checkpoint.save(manager, iteration, state, cfg.train)
+      sps = derived.env_steps_per_call / dt
+      bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
+      bar.update(len(rows))
+      if flag["stop"]:
+        stopped = True
+        break
+  bar.close()
+  manager.close()
+  writer.close()
+  plot_reward_curve(out)
+  steady = float(np.median(call_s)) if call_s else None
+  summary = {
+      "task": cfg.task, "algo": cfg.algo, "preset": cfg.preset, "ablation": cfg.ablation,
+      "seeds": cfg.seeds, "iterations": iteration,
+      "env_steps": iteration * derived.env_steps_per_iteration,
+      "wall_s": time.perf_counter() - wall0,
+      "first_call_s": compile_s,
+      "train_env_steps_per_s": (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
+      "final_episode_reward": read_progress(out)["episode_reward"][-1].item() if iteration else None,
+      "interrupted": stopped,
+      "backend": jax.default_backend(), "devices": jax.device_count(),
+  }
+  (out / "summary.json").write_text(json.dumps(summary, indent=2))
+  return summary

@@ -1,0 +1,68 @@
+"""Shared, session-scoped fixtures: each trainer program is compiled once for the whole test run.
+
+The learner tests (``test_losses``, ``test_networks``, ``test_train``) use the tiny toy env
+(:mod:`mash.toy_env`) and tiny networks so that every jitted program compiles in seconds on CPU.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from mash import train
+from mash.config import TrainConfig
+from mash.toy_env import make_toy_env
+
+TOY_CALLS = 6  # jitted calls of the learning run (x iterations_per_call iterations).
+
+
+@pytest.fixture(scope='session')
+def toy_config() -> TrainConfig:
+  """A config small enough to compile and train in seconds: 32 envs x 16 steps = 512 steps/iter."""
+  return TrainConfig(num_envs=32, unroll_length=16, iterations_per_call=5, num_epochs=4,
+                     num_minibatches=4, learning_rate=3e-3, actor_hidden=(32, 32),
+                     critic_hidden=(32, 32), seed=0)
+
+
+@pytest.fixture(scope='session')
+def mash_env():
+  """Toy env, 2 legs + 2 arms, MASH partition (two agent groups)."""
+  return make_toy_env('legs_arms', 'mash')
+
+
+@pytest.fixture(scope='session')
+def mash_trainer(toy_config, mash_env) -> train.Trainer:
+  return train.make_train(toy_config, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+
+
+@pytest.fixture(scope='session')
+def learning_run(mash_trainer):
+  """Trains seed 0 for ``TOY_CALLS`` calls; returns the metrics of every call (numpy, stacked to
+  ``[TOY_CALLS * iterations_per_call]``) and the params after the first call."""
+  state = mash_trainer.init(jax.random.PRNGKey(0))
+  history = []
+  first_params = []
+
+  def progress(iteration, metrics):
+    history.append(metrics)
+
+  for call in range(TOY_CALLS):
+    state = train.run(mash_trainer, state, 1, progress)
+    if call == 0:
+      first_params.append(jax.device_get(state.params))
+  metrics = {k: np.concatenate([m[k] for m in history]) for k in history[0]}
+  return {'metrics': metrics, 'first_params': first_params[0], 'final_state': state}
+
+
+@pytest.fixture(scope='session')
+def smoke_run(tmp_path_factory):
+  """A real MJX training run of the ``smoke`` preset (bipedal MASH), trained once per session.
+
+  Returns the run directory (``config.json``, ``progress.csv``, ``checkpoints/``, ...).
+  """
+  from mash import experiment, runs
+  out = tmp_path_factory.mktemp('runs') / 'smoke_bipedal_mash'
+  cfg = experiment.make_config('bipedal', 'mash', 'smoke')
+  runs.train(cfg, out, show_progress=False)
+  return out

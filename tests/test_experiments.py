@@ -1,0 +1,149 @@
+"""End-to-end: the smoke preset on the real MJX env, evaluation files, config overrides, CLI errors.
+
+The MJX programs here (one training call, one evaluation rollout) are compiled once per session
+through the ``smoke_run`` fixture (tests/conftest.py).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mash import experiment, rewards, runs
+
+
+def test_smoke_run_writes_every_file(smoke_run):
+  """config.json, progress.csv with every column, checkpoints, summary, plot, TensorBoard events."""
+  for name in ("config.json", "progress.csv", "progress_seeds.csv", "summary.json",
+               "reward_curve.png"):
+    assert (smoke_run / name).is_file(), name
+  assert any((smoke_run / "checkpoints").iterdir())
+  assert any(p.name.startswith("events") for p in (smoke_run / "tensorboard").iterdir())
+  progress = runs.read_progress(smoke_run)
+  for column in runs.BASE_COLUMNS:
+    assert column in progress
+  for term in rewards.TERMS:
+    assert f"reward/{term}" in progress, term
+  cfg = runs.load_config(smoke_run)
+  np.testing.assert_array_equal(progress["iteration"], np.arange(1, cfg.train.num_iterations + 1))
+  np.testing.assert_array_equal(progress["env_steps"],
+                                progress["iteration"] * cfg.train.num_envs * cfg.train.unroll_length)
+  summary = json.loads((smoke_run / "summary.json").read_text())
+  assert summary["iterations"] == cfg.train.num_iterations and not summary["interrupted"]
+
+
+def test_smoke_run_reward_rises(smoke_run):
+  """Mean episode reward of the last iterations beats that of the first completed episodes."""
+  r = runs.read_progress(smoke_run)["episode_reward"]
+  first = r[np.nonzero(r)[0][0]]
+  assert np.all(np.isfinite(r))
+  assert r[-3:].mean() > first
+
+
+def test_config_round_trip(smoke_run):
+  """config.json parses back to the config the run was made with."""
+  cfg = runs.load_config(smoke_run)
+  assert cfg == experiment.make_config("bipedal", "mash", "smoke")
+
+
+def test_overrides_apply_and_reject():
+  cfg = experiment.make_config("armswing", "ppo", "smoke", overrides=[
+      "train.learning_rate=5e-4", "env.reward_scales.joint_pos=2.0", "env.agent_id=false",
+      "train.actor_hidden=32,16"])
+  assert cfg.train.learning_rate == 5e-4 and cfg.env.reward_scales.joint_pos == 2.0
+  assert cfg.env.agent_id is False and cfg.train.actor_hidden == (32, 16)
+  assert cfg.env.partition == "ppo"
+  bad = [["train.nope=1"], ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
+  for overrides in bad:
+    with pytest.raises(experiment.ConfigError):
+      experiment.make_config("bipedal", "mash", "smoke", overrides=overrides)
+  for kwargs in (dict(task="crawl"), dict(task="bipedal", algo="sac"),
+                 dict(task="bipedal", preset="huge"), dict(task="bipedal", ablation="magic")):
+    with pytest.raises(experiment.ConfigError):
+      experiment.make_config(**kwargs)
+
+
+def test_evaluate_writes_metrics_and_trajectories(smoke_run):
+  """evaluate: metrics.json with SPEC §8 keys and trajectories.npz with SPEC §8 arrays."""
+  from mash import evaluation
+  from experiments.evaluate import evaluate_run
+  cfg = evaluation.EvalConfig(num_episodes=3, episode_s=1.0)
+  result = evaluate_run(str(smoke_run), cfg)
+  metrics = json.loads((smoke_run / "eval" / "metrics.json").read_text())
+  for key in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate",
+              "forward_speed", "command_vx"):
+    assert key in metrics, key
+  assert metrics["command_vx"] == pytest.approx(0.4)
+  assert 0.0 <= metrics["fall_rate"] <= 1.0
+  traj = np.load(smoke_run / "eval" / "trajectories.npz")
+  steps = 50
+  assert traj["actions"].shape == (3, steps, 12)
+  assert traj["base_height"].shape == (3, steps)
+  assert traj["euler"].shape == (3, steps, 3)
+  assert traj["hip_pitch"].shape == (3, steps, 2)
+  assert float(traj["dt"]) == pytest.approx(0.02)
+  assert (smoke_run / "eval" / "hip_pitch.png").is_file()
+  # The metrics are recomputable from the file.
+  from mash import metrics as metrics_lib
+  alive = traj["alive"].min(axis=1) > 0
+  pick = alive if alive.any() else np.ones_like(alive)
+  assert metrics_lib.action_smoothness(traj["actions"][pick]) == pytest.approx(
+      result["S_action"], rel=1e-5)
+
+
+def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
+  return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, cwd=cwd,
+                        timeout=120)
+
+
+@pytest.mark.parametrize("args, words", [
+    (("experiments.bipedal", "--algo", "sac"), "algo 'sac'"),
+    (("experiments.bipedal", "--preset", "huge"), "preset 'huge'"),
+    (("experiments.armswing", "--ablation", "magic"), "ablation 'magic'"),
+    (("experiments.bipedal", "--set", "train.learning_rate"), "path=value"),
+    (("experiments.bipedal", "--resume", "/nonexistent/run"), "does not exist"),
+    (("experiments.evaluate", "--run", "/nonexistent/run"), "does not exist"),
+])
+def test_cli_bad_input_is_one_line(args, words):
+  """Bad input: exit status 2, one line on stderr naming the input, no traceback."""
+  out = _cli(*args)
+  assert out.returncode == 2
+  lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
+  assert len(lines) == 1 and lines[0].startswith("error:") and words in lines[0], out.stderr
+
+
+def test_cli_refuses_existing_run_and_wrong_task(smoke_run, tmp_path):
+  """--out holding a run is refused; --resume of a bipedal run from armswing is refused."""
+  before = (smoke_run / "progress.csv").read_text()
+  out = _cli("experiments.bipedal", "--preset", "smoke", "--out", str(smoke_run))
+  assert out.returncode == 2 and "already holds a run" in out.stderr
+  out = _cli("experiments.armswing", "--resume", str(smoke_run))
+  assert out.returncode == 2 and "'bipedal' run" in out.stderr
+  (tmp_path / "not_a_run").mkdir()
+  out = _cli("experiments.evaluate", "--run", str(tmp_path / "not_a_run"))
+  assert out.returncode == 2 and "not a run directory" in out.stderr
+  assert (smoke_run / "progress.csv").read_text() == before
+
+
+def test_compare_report_from_synthetic_results():
+  """report.md: the paper's table layout, our rows, Welch p-values, an honest verdict."""
+  from experiments.compare import build_report
+  rng = np.random.default_rng(0)
+
+  def seeds(base):
+    return {"per_seed": [{"T_conv": base * 100 + i, "S_action": base * 0.1 + 0.01 * i,
+                          "S_action_2nd": base * 0.2, "S_torso": base * 1e-3, "C_limb": base * 0.3,
+                          "fall_rate": 0.0, "forward_speed": 0.3 + rng.normal() * 0.01}
+                         for i in range(3)]}
+
+  md, data = build_report("bipedal", {"mash": seeds(1.0), "ppo": seeds(2.0)}, "smoke", 3)
+  assert "| MASH (ours) |" in md and "| Single-agent PPO (paper) | ~1661 |" in md
+  assert data["table"]["mash"]["T_conv"]["mean"] == pytest.approx(101.0)
+  assert data["welch"]["S_action"]["p"] < 0.05
+  assert "- S_action: MASH lower than PPO" in md
+  md, _ = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
+  assert "- S_action: MASH not lower than PPO" in md
