@@ -4,8 +4,8 @@ A checkpoint step holds two items: ``state`` (params, optimizer state, normalize
 state, episode bookkeeping, rng, iteration; restored exactly, so training resumes bit-for-bit) and
 ``config`` (the :class:`mash.config.TrainConfig` as JSON). Orbax writes each step into a temporary
 directory and renames it when complete, so a crash mid-save leaves no step that ``latest_step`` would
-return: :func:`restore_latest` always picks the newest complete step. ``max_to_keep`` oldest steps
-are garbage-collected.
+return: :func:`restore_latest` always picks the newest complete step. Only the newest ``max_to_keep``
+steps are kept. Typed PRNG keys in the state are stored as their raw data and re-wrapped on restore.
 """
 
 from __future__ import annotations
@@ -79,8 +79,9 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
   Returns:
     Whether a checkpoint was saved (Orbax may skip a step already present).
   """
+  flat = _to_flat(jax.tree.map(_key_to_data, state))
   saved = manager.save(step, args=ocp.args.Composite(
-      state=ocp.args.StandardSave(_to_flat(state)), config=ocp.args.JsonSave(config_to_dict(config))))
+      state=ocp.args.StandardSave(flat), config=ocp.args.JsonSave(config_to_dict(config))))
   if wait:
     manager.wait_until_finished()
   return saved
@@ -89,11 +90,34 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
 def restore(manager: ocp.CheckpointManager, step: int, template_state: Any) -> Restored:
   """Restores checkpoint ``step`` into the structure of ``template_state`` (arrays or
   ``jax.ShapeDtypeStruct``s, e.g. ``jax.eval_shape(trainer.init, key)``)."""
-  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template_state)
+  abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct,
+                          jax.tree.map(_key_to_data_shape, template_state))
   restored = manager.restore(step, args=ocp.args.Composite(
       state=ocp.args.StandardRestore(_to_flat(abstract)), config=ocp.args.JsonRestore()))
   state = jax.tree.map(_match_commitment, _from_flat(restored['state'], abstract), template_state)
+  state = jax.tree.map(_data_to_key, state, template_state)
   return Restored(step=step, state=state, config=config_from_dict(restored['config']))
+
+
+def _is_typed_key(x: Any) -> bool:
+  return hasattr(x, 'dtype') and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _key_to_data(x: Any) -> Any:
+  """Typed PRNG keys (``jax.random.key``) are stored as their raw ``uint32`` data."""
+  return jax.random.key_data(x) if _is_typed_key(x) else x
+
+
+def _key_to_data_shape(x: Any) -> Any:
+  return jax.eval_shape(jax.random.key_data, x) if _is_typed_key(x) else x
+
+
+def _data_to_key(restored: Any, template: Any) -> Any:
+  if not _is_typed_key(template):
+    return restored
+  impl = (jax.random.key_impl(template) if isinstance(template, jax.Array)
+          else getattr(template.dtype, '_impl', None))  # ShapeDtypeStruct template
+  return jax.random.wrap_key_data(restored, impl=impl)
 
 
 def _match_commitment(restored: jax.Array, template: Any) -> jax.Array:

@@ -21,6 +21,7 @@ import flax.linen as nn
 import flax.traverse_util
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mash import normalization
 from mash.agents import AgentGroup, assemble_action, total_agents
@@ -223,12 +224,17 @@ def gaussian_entropy(dist: GaussianParams) -> jax.Array:
 
 
 def sample_actions(key: jax.Array, dists: Mapping[str, GaussianParams]) -> dict[str, jax.Array]:
-  """Samples ``{group: [..., n_agents, act_dim]}`` from each group's Gaussian."""
-  keys = jax.random.split(key, len(dists))
-  return {
-      name: d.mean + jnp.exp(d.log_std) * jax.random.normal(k, d.mean.shape, d.mean.dtype)
-      for k, (name, d) in zip(keys, dists.items())
-  }
+  """Samples ``{group: [..., n_agents, act_dim]}`` from each group's Gaussian.
+
+  One normal draw covers all groups (split afterwards); all groups must share the batch shape.
+  """
+  items = list(dists.items())
+  batch_shape = items[0][1].mean.shape[:-2]
+  sizes = [d.mean.shape[-2] * d.mean.shape[-1] for _, d in items]
+  noise = jax.random.normal(key, batch_shape + (sum(sizes),), items[0][1].mean.dtype)
+  chunks = jnp.split(noise, np.cumsum(sizes)[:-1], axis=-1)
+  return {name: d.mean + jnp.exp(d.log_std) * z.reshape(d.mean.shape)
+          for (name, d), z in zip(items, chunks)}
 
 
 def per_agent(groups: Sequence[AgentGroup], values: Mapping[str, jax.Array]) -> jax.Array:

@@ -62,7 +62,8 @@ class ToyConfig:
     alive: reward per step survived.
     smoothness: scale (negative) of the mean squared action change.
     action_clip: commanded positions are clipped to ``[-action_clip, action_clip]``.
-    init_noise: std of the initial joint offset from the target.
+    init_noise: std of the initial joint offset from the target (first episode of each env; later
+      episodes restart exactly on target).
   """
 
   episode_length: int = 40
@@ -169,7 +170,7 @@ class ToyEnv:
 
   def reset(self, key: jax.Array) -> State:
     """Starts an episode at a random phase with the joints near their targets."""
-    key, phase_key, noise_key = jax.random.split(key, 3)
+    phase_key, noise_key = jax.random.split(key)
     phase = jax.random.uniform(phase_key, ())
     q = self._targets(phase) + self.config.init_noise * jax.random.normal(
         noise_key, (self.action_size,))
@@ -178,7 +179,7 @@ class ToyEnv:
     obs = self._obs(ps)
     zero = jnp.zeros(())
     metrics = {'reward/tracking': zero, 'reward/alive': zero, 'reward/smoothness': zero}
-    info = {'rng': key, 'truncation': zero, 'next_critic_obs': obs['critic']}
+    info = {'truncation': zero, 'next_critic_obs': obs['critic']}
     return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
   def step(self, state: State, action: jax.Array) -> State:
@@ -203,11 +204,14 @@ class ToyEnv:
     done = (fell | timeout).astype(jnp.float32)
     truncation = (timeout & ~fell).astype(jnp.float32)
 
-    rng, reset_key = jax.random.split(state.info['rng'])
-    fresh = self.reset(reset_key)
-    ps_out = jax.tree.map(lambda r, n: jnp.where(done > 0, r, n), fresh.pipeline_state, nxt)
+    # Auto-reset without drawing random numbers (keeps the step program small): the next episode
+    # starts on its targets at a phase shifted by the golden ratio, so restarts spread over the cycle.
+    restart_phase = jnp.mod(phase + 0.618034, 1.0)
+    fresh = ToyPipelineState(q=self._targets(restart_phase), prev_action=jnp.zeros_like(q),
+                             phase=restart_phase, t=jnp.zeros((), jnp.int32))
+    ps_out = jax.tree.map(lambda r, n: jnp.where(done > 0, r, n), fresh, nxt)
     obs = self._obs(ps_out)
-    info = {'rng': rng, 'truncation': truncation, 'next_critic_obs': self._critic_obs(nxt)}
+    info = {'truncation': truncation, 'next_critic_obs': self._critic_obs(nxt)}
     return State(pipeline_state=ps_out, obs=obs, reward=reward, done=done, metrics=terms, info=info)
 
 
