@@ -46,6 +46,8 @@ class TrainConfig:
       (rsl_rl ``init_noise_std`` = 1.0, i.e. log-std 0).
     share_actor: agents of one group share one actor network (MASH). ``False`` (ablation) gives
       each agent its own parameters.
+    local_critic: ablation (IPPO): each agent's critic sees only its own observation (the env must
+      be built with ``critic='local'``) instead of the centralized critic on the global state.
     shared_value_head: ablation: the critic has a single value head broadcast to all agents
       instead of one head per agent (paper: ``V_t in R^{N_agents}``).
     normalize_observations: running mean/variance normalization of actor and critic inputs
@@ -75,6 +77,7 @@ class TrainConfig:
   init_log_std: float = 0.0
   share_actor: bool = True
   shared_value_head: bool = False
+  local_critic: bool = False
   normalize_observations: bool = True
   obs_clip: float = 10.0
   seed: int = 0

@@ -67,6 +67,9 @@ class EnvConfig:
     swing_amplitude: leg reference amplitude (rad, times the robot's gait_reference multipliers).
     arm_swing_amplitude: shoulder reference amplitude (rad), armswing only.
     agent_id: append the one-hot agent id to each agent's observation (ablation switch).
+    critic: 'global' (the 106-dim privileged state, MASH) or 'local' (IPPO ablation: the critic
+      input is every agent's own observation, zero-padded to the largest and stacked, so a
+      per-agent critic sees only its own agent).
     temporal_director: feed the gait phase to the agents (ablation switch: zeros when off).
     fall_height: torso height (m) under which the episode ends as a fall.
     fall_tilt: |roll| or |pitch| (rad) above which the episode ends as a fall.
@@ -86,6 +89,7 @@ class EnvConfig:
   swing_amplitude: float = 0.17
   arm_swing_amplitude: float = 0.3
   agent_id: bool = True
+  critic: str = "global"
   temporal_director: bool = True
   fall_height: float = 0.4
   fall_tilt: float = 1.0
@@ -226,7 +230,13 @@ class MashEnv(brax_base.Env):
     self._ref_limb = ref_limb
     self._ref_is_leg = jnp.array([spec.limbs[i].group == "legs" for i in ref_limb])
     self._leg_limbs = np.array([self._limb_index[l.name] for l in spec.limbs if l.group == "legs"])
-    self.critic_obs_size = 4 * self.n_joints + 2 + 4 + 3 + 3 + 3 + 2 + 3 + 1 + 1 + 2 + 2
+    if config.critic not in ("global", "local"):
+      raise ValueError(f"critic '{config.critic}' is unknown; expected 'global' or 'local'")
+    self._local_dim = max(g.obs_dim for g in self.agent_groups)
+    if config.critic == "local":
+      self.critic_obs_size = agents.total_agents(self.agent_groups) * self._local_dim
+    else:
+      self.critic_obs_size = 4 * self.n_joints + 2 + 4 + 3 + 3 + 3 + 2 + 3 + 1 + 1 + 2 + 2
     self._nominal_mass = float(np.sum(m.body_mass))
 
   # ----------------------------------------------------------------------------------- Brax API
@@ -384,6 +394,12 @@ class MashEnv(brax_base.Env):
           parts.append(jax.nn.one_hot(k, len(limbs)))
         rows.append(jnp.concatenate(parts))
       obs[group.name] = jnp.stack(rows)
+
+    if cfg.critic == "local":
+      rows = [jnp.pad(obs[g.name], ((0, 0), (0, self._local_dim - g.obs_dim)))
+              for g in self.agent_groups]
+      obs["critic"] = jnp.concatenate(rows).reshape(-1)
+      return obs
 
     dr = info["dr"]
     base_angle = 2 * jnp.pi * info["phase"]

@@ -89,6 +89,7 @@ def _apply_ablation(cfg: ExperimentConfig) -> ExperimentConfig:
     train = dataclasses.replace(train, shared_value_head=True)
   elif a == "local_critic":
     train = dataclasses.replace(train, local_critic=True)
+    env = dataclasses.replace(env, critic="local")
   elif a == "no_temporal_director":
     env = dataclasses.replace(env, temporal_director=False)
   elif a == "no_agent_id":

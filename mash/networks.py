@@ -127,6 +127,27 @@ class CentralCritic(nn.Module):
     return MLP(self.hidden_sizes, self.n_heads)(critic_obs)
 
 
+class LocalCritic(nn.Module):
+  """Ablation (IPPO): each agent's own critic on its own observation only.
+
+  Attributes:
+    n_agents: agents (value heads).
+    hidden_sizes: MLP hidden widths (separate parameters per agent).
+  """
+
+  n_agents: int
+  hidden_sizes: Sequence[int] = (512, 256, 128)
+
+  @nn.compact
+  def __call__(self, critic_obs: jax.Array) -> jax.Array:
+    """``[..., n_agents * obs_dim]`` (each agent's padded observation) -> ``[..., n_agents]``."""
+    x = critic_obs.reshape(critic_obs.shape[:-1] + (self.n_agents, -1))
+    critics = nn.vmap(MLP, in_axes=0, out_axes=0, variable_axes={'params': 0},
+                      split_rngs={'params': True}, axis_size=self.n_agents)
+    values = critics(self.hidden_sizes, 1)(jnp.moveaxis(x, -2, 0))
+    return jnp.moveaxis(values[..., 0], 0, -1)
+
+
 class Networks(NamedTuple):
   """The networks of one agent partition, as pure functions.
 
@@ -169,7 +190,14 @@ def make_networks(groups: Sequence[AgentGroup], critic_obs_size: int,
     return PerAgentActor(g.n_agents, g.act_dim, tuple(config.actor_hidden), config.init_log_std)
 
   actors = {g.name: actor_module(g) for g in groups}
-  critic = CentralCritic(n_heads, tuple(config.critic_hidden))
+  if config.local_critic:
+    if critic_obs_size % n_agents:
+      raise ValueError(f'local_critic: critic_obs_size {critic_obs_size} is not n_agents '
+                       f'({n_agents}) x an observation size; build the env with critic="local"')
+    critic = LocalCritic(n_agents, tuple(config.critic_hidden))
+    n_heads = n_agents
+  else:
+    critic = CentralCritic(n_heads, tuple(config.critic_hidden))
 
   def maybe_normalize(normalizer: normalization.Normalizer | None, name: str,
                       x: jax.Array) -> jax.Array:
