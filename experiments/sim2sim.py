@@ -97,9 +97,10 @@ def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> tuple[P
   return path, run
 
 
-def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, say
+def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, dr: bool, say
                 ) -> tuple[dict | None, str]:
-  """The MJX side of the table: ``DIR/eval/metrics.json`` or a short ``evaluate_run``."""
+  """The MJX side of the table: ``DIR/eval/metrics.json`` or a short ``evaluate_run`` (with domain
+  randomization only when ``dr``: off, it runs the same nominal robot as the MuJoCo C side)."""
   from experiments.evaluate import evaluate_run
   from mash import evaluation, sim2sim
   existing = run_dir / "eval" / "metrics.json"
@@ -110,14 +111,16 @@ def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float,
               f"{cfg.get('episode_s', '?')} s, DR {'on' if cfg.get('randomization', True) else 'off'})")
     say(f"MJX metrics from {existing}")
     return sim2sim.mjx_row(metrics), source
-  cfg = evaluation.EvalConfig(command_vx=command_vx, num_episodes=episodes, episode_s=seconds)
+  cfg = evaluation.EvalConfig(command_vx=command_vx, num_episodes=episodes, episode_s=seconds,
+                              randomization=dr)
   say(f"MJX evaluation: {episodes} episodes x {seconds:g} s (compiling the MJX rollout takes "
       "about a minute on CPU; --no-mjx skips it)")
   t0 = time.perf_counter()
   metrics = evaluate_run(str(run_dir), cfg, write=False)
   say(f"MJX evaluation done in {time.perf_counter() - t0:.0f} s")
   return sim2sim.mjx_row(metrics), (f"experiments.evaluate.evaluate_run, {episodes} episodes x "
-                                    f"{seconds:g} s, DR on (computed here; not written to eval/)")
+                                    f"{seconds:g} s, DR {'on' if dr else 'off'} (computed here; "
+                                    "not written to eval/)")
 
 
 def main(argv=None) -> None:
@@ -139,31 +142,35 @@ def main(argv=None) -> None:
   p.add_argument("--no-mjx", action="store_true", help="skip the MJX side of the comparison")
   p.add_argument("--mjx-episodes", type=int, default=4,
                  help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing")
+  p.add_argument("--mjx-dr", action="store_true",
+                 help="that MJX evaluation with domain randomization (default: off, the nominal "
+                      "robot, like the MuJoCo C side)")
   args = p.parse_args(argv)
 
-  with common.user_errors():
-    say = lambda msg: print(msg, flush=True)
-    if args.episodes < 1 or args.seconds <= 0 or args.mjx_episodes < 1:
-      raise common.UserError("--episodes and --mjx-episodes must be >= 1 and --seconds > 0")
-    if args.iterations < 1:
-      raise common.UserError(f"--iterations must be >= 1, got {args.iterations}")
-    if args.viewer and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-      raise common.UserError("--viewer needs a display (DISPLAY is not set); use --video OUT.mp4 "
-                             "to render offscreen instead")
-    video, video_skipped = args.video, None
-    if video is not None:
-      if Path(video).suffix.lower() != ".mp4":
-        raise common.UserError(f"--video '{video}': expected a .mp4 file name")
-      if not args.viewer:
-        backend, reason = headless_gl()  # MUJOCO_GL must be set before mujoco is imported
-        if backend is None:
-          video, video_skipped = None, reason
-          say(f"video skipped: {reason}")
-        else:
-          os.environ["MUJOCO_GL"] = backend
-          if backend in ("egl", "osmesa"):
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+  say = lambda msg: print(msg, flush=True)
+  if args.episodes < 1 or args.seconds <= 0 or args.mjx_episodes < 1:
+    p.error("--episodes and --mjx-episodes must be >= 1 and --seconds > 0")
+  if args.iterations < 1:
+    p.error(f"--iterations must be >= 1, got {args.iterations}")
+  if args.viewer and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    p.error("--viewer needs a display (DISPLAY is not set); use --video OUT.mp4 to render "
+            "offscreen instead")
+  # MUJOCO_GL is read when mujoco is imported: choose it before anything imports mash.
+  video, video_skipped = args.video, None
+  if video is not None:
+    if Path(video).suffix.lower() != ".mp4":
+      p.error(f"--video '{video}': expected a .mp4 file name")
+    if not args.viewer:
+      backend, reason = headless_gl()
+      if backend is None:
+        video, video_skipped = None, reason
+        say(f"video skipped: {reason}")
+      else:
+        os.environ["MUJOCO_GL"] = backend
+        if backend in ("egl", "osmesa"):
+          os.environ.setdefault("PYOPENGL_PLATFORM", backend)
 
+  with common.user_errors():
     from mash import env as env_lib, evaluation, export, runs, sim2sim
     import jax
     import numpy as np
@@ -193,15 +200,18 @@ def main(argv=None) -> None:
           f"{cfg.command_vx:g} m/s; sim_dt {cfg.sim_dt} s, {cfg.integrator}, {cfg.iterations} "
           "Newton iterations, full collision geometry")
       t0 = time.perf_counter()
-      traj = sim2sim.simulate(onnx_path, env.spec, cfg, hip_reference, video,
-                              video_seconds=args.video_seconds, progress=say)
+      result = sim2sim.simulate(onnx_path, env.spec, cfg, hip_reference, video,
+                                video_seconds=args.video_seconds, progress=say)
+      traj = result.traj
+      if result.video_error is not None:
+        video, video_skipped = None, result.video_error
       wall = time.perf_counter() - t0
     except export.ExportError as e:
       raise common.UserError(str(e)) from None
     mujoco_row = sim2sim.summarize(traj, cfg.command_vx)
 
     mjx, source = (None, "skipped (--no-mjx)") if args.no_mjx else mjx_metrics(
-        run_dir, args.mjx_episodes, args.seconds, args.command_vx, say)
+        run_dir, args.mjx_episodes, args.seconds, args.command_vx, args.mjx_dr, say)
     meta = export.read_metadata(onnx_path)
     alive = traj["alive"]
     report = {
@@ -220,7 +230,7 @@ def main(argv=None) -> None:
                         for a, v, w in zip(alive, traj["forward_velocity"], traj["wall_s"])],
         "wall_s": wall,
         "realtime_factor": float(alive.sum() * traj["dt"] / max(wall, 1e-9)),
-        "video": video, "video_skipped": video_skipped,
+        "video": video, "video_frames": result.video_frames, "video_skipped": video_skipped,
     }
     out = sim2sim.write_report(run_dir / "sim2sim", report, traj)
     say(sim2sim.markdown(report))

@@ -1,0 +1,439 @@
+"""The deployable policy of a trained run as one ONNX graph, built by hand with ``onnx.helper``.
+
+The graph holds everything between the robot's sensors and its joint targets, so a hardware or
+MuJoCo C controller needs no Python from this package (SPEC §4 observation layout):
+
+  inputs (float32, leading batch dim ``N``; use ``N = 1`` on a robot):
+    ``q [N, J]``            absolute joint angles (rad) of ALL actuated joints, ``spec.joints`` order
+    ``dq [N, J]``           joint velocities (rad/s), same order
+    ``last_action [N, A]``  the previous ``action`` output (zeros at start)
+    ``gait_phase [N, 1]``   gait clock in cycles, [0, 1); advances ``ctrl_dt / gait_cycle_s`` per
+                            control step, frozen while the standing flag of ``command`` is 1
+    ``euler [N, 3]``        torso roll, pitch, yaw (rad; ZYX convention)
+    ``ang_vel [N, 3]``      torso angular velocity in the torso frame (rad/s)
+    ``command [N, 4]``      standing flag (0/1), vx (m/s), vy (m/s), yaw rate (rad/s)
+  outputs:
+    ``action [N, A]``       policy mean in flat action order (the controlled joints); feed it back
+                            as ``last_action`` next step
+    ``q_target [N, A]``     PD position targets (rad) of the controlled joints:
+                            ``default + action_scale * clip(action, -action_clip, action_clip)``
+
+Inside: each limb's sin/cos phase with the env's offsets (legs 0 / 0.5, each arm with the opposite
+leg), one feature row ``[q - default | dq | last_action | sin | cos | euler | ang_vel | command | 0 | 1]``
+from which every agent's observation is one ``Gather`` (joints of its limb, its phase, the one-hot
+id from the constant columns), the running-statistics normalization, each group's shared actor
+MLP (``MatMul``/``Add``/``Elu``) applied to all agents of the group at once, and the scatter of
+per-agent actions into flat order. Joint order, units, control rate, default pose, PD gains and
+action scale are in the model's ``metadata_props`` (:func:`read_metadata`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Mapping, NamedTuple
+
+import flax.traverse_util
+import jax
+import jax.numpy as jnp
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from mash import normalization
+from mash import randomize
+
+OPSET = 17
+IR_VERSION = 8  # the IR of opset 17: loads in onnxruntime >= 1.11 and most embedded runtimes
+INPUTS = ("q", "dq", "last_action", "gait_phase", "euler", "ang_vel", "command")
+OUTPUTS = ("action", "q_target")
+
+
+class ExportError(ValueError):
+  """A run that cannot be exported as asked (one line)."""
+
+
+class PolicyParts(NamedTuple):
+  """What the graph is built from: one seed's actors of a run.
+
+  Attributes:
+    env: the run's ``MashEnv`` (observation layout, joint tables, config).
+    networks: its ``Networks`` (the JAX reference applies them).
+    params: that seed's full params ``{'actors': ..., 'critic': ...}``.
+    normalizer: that seed's ``{stream: RunningStats}``, or None (no normalization).
+    obs_clip: clip of normalized observations.
+    share_actor: one actor per group (else one per agent: the no-sharing ablation).
+    meta: extra metadata (run, iteration, seed, task, algo).
+  """
+
+  env: Any
+  networks: Any
+  params: Any
+  normalizer: Any
+  obs_clip: float
+  share_actor: bool
+  meta: Mapping[str, Any]
+
+
+def policy_parts(run, seed: int = 0) -> PolicyParts:
+  """One seed's policy of a :class:`mash.runs.LoadedRun` (or anything with its fields)."""
+  from mash import runs
+  seeds = int(run.config.seeds)
+  if not 0 <= seed < seeds:
+    raise ExportError(f"seed {seed} is out of range: the run has {seeds} seed(s) (0..{seeds - 1})")
+  params = jax.device_get(runs.seed_slice(run.params, seed, seeds))
+  normalizer = None
+  if run.normalizer is not None and run.config.train.normalize_observations:
+    normalizer = jax.device_get(runs.seed_slice(run.normalizer, seed, seeds))
+  meta = {"task": run.config.task, "algo": run.config.algo, "ablation": run.config.ablation,
+          "checkpoint_iteration": int(run.iteration), "seed": seed}
+  return PolicyParts(run.trainer.env, run.trainer.networks, params, normalizer,
+                     float(run.config.train.obs_clip), bool(run.config.train.share_actor), meta)
+
+
+# ------------------------------------------------------------------------------- layout tables
+class Layout(NamedTuple):
+  """Where every observation entry comes from in the feature row (see module docstring).
+
+  Attributes:
+    n_joints: J. n_actions: A. n_limbs: L.
+    width: width of the feature row.
+    zero: column that is always 0. one: column that is always 1.
+    obs_index: ``{group: int64 [n_agents, obs_dim]}`` feature columns of each agent observation.
+    phase_offset: ``[L]`` limb phase offsets (cycles).
+  """
+
+  n_joints: int
+  n_actions: int
+  n_limbs: int
+  width: int
+  zero: int
+  one: int
+  obs_index: dict[str, np.ndarray]
+  phase_offset: np.ndarray
+
+
+def layout(env) -> Layout:
+  """The gather tables reproducing ``MashEnv.observe`` for every agent group of ``env``."""
+  cfg = env.config
+  J, A, L = env.n_joints, env.action_size, len(env.spec.limbs)
+  oq, odq, oa = 0, J, 2 * J
+  osin, ocos = 2 * J + A, 2 * J + A + L
+  oshared = 2 * J + A + 2 * L
+  zero, one = oshared + 10, oshared + 11
+  ctrl = [int(i) for i in env._ctrl]
+  pos_in_action = {j: k for k, j in enumerate(ctrl)}
+  shared = list(range(oshared, oshared + 10))  # euler 3, ang_vel 3, command 4
+
+  def phase_cols(limb_index: int) -> list[int]:
+    if not cfg.temporal_director:
+      return [zero, zero]
+    return [osin + limb_index, ocos + limb_index]
+
+  obs_index = {}
+  for group, (_, limbs) in zip(env.agent_groups, env._group_limbs):
+    rows = []
+    if group.name == "body":
+      acting = [env._limb_index[l.name] for l in limbs]
+      row = ([oq + j for j in ctrl] + [odq + j for j in ctrl] + [oa + k for k in range(A)]
+             + [c for li in acting for c in phase_cols(li)] + shared)
+      rows.append(row)
+    else:
+      for k, limb in enumerate(limbs):
+        idx = [int(i) for i in env._limb_joints[limb.name]]
+        row = ([oq + j for j in idx] + [odq + j for j in idx]
+               + [oa + pos_in_action[j] if j in pos_in_action else zero for j in idx]
+               + phase_cols(env._limb_index[limb.name]) + shared)
+        if cfg.agent_id:
+          row += [one if m == k else zero for m in range(len(limbs))]
+        rows.append(row)
+    table = np.asarray(rows, np.int64)
+    if table.shape != (group.n_agents, group.obs_dim):
+      raise ExportError(f"group '{group.name}': observation table {table.shape} does not match "
+                        f"the env's ({group.n_agents}, {group.obs_dim})")
+    obs_index[group.name] = table
+  return Layout(J, A, L, one + 1, zero, one, obs_index,
+                np.asarray(env._phase_offset, np.float32))
+
+
+def _dense_layers(variables: Mapping[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
+  """``[(kernel, bias)]`` of an actor's MLP in layer order (kernels ``[in, out]``, or
+  ``[n_agents, in, out]`` for per-agent actors)."""
+  flat = flax.traverse_util.flatten_dict(dict(variables["params"]))
+  layers = {}
+  for path, value in flat.items():
+    dense = [p for p in path if str(p).startswith("Dense_")]
+    if dense and path[-1] in ("kernel", "bias"):
+      layers.setdefault(int(dense[-1].split("_")[1]), {})[path[-1]] = np.asarray(value, np.float32)
+  if not layers:
+    raise ExportError("actor parameters hold no Dense layers")
+  return [(layers[k]["kernel"], layers[k]["bias"]) for k in sorted(layers)]
+
+
+# ------------------------------------------------------------------------------ graph building
+class _Graph:
+  """Collects nodes and initializers with unique names."""
+
+  def __init__(self):
+    self.nodes: list[onnx.NodeProto] = []
+    self.inits: list[onnx.TensorProto] = []
+    self._n = 0
+
+  def const(self, value: Any, name: str, dtype=np.float32) -> str:
+    self._n += 1
+    full = f"{name}_{self._n}"
+    self.inits.append(numpy_helper.from_array(np.asarray(value, dtype), full))
+    return full
+
+  def op(self, op_type: str, inputs: list[str], name: str, out: str | None = None,
+         **attrs: Any) -> str:
+    self._n += 1
+    out = out or f"{name}_{self._n}"
+    self.nodes.append(helper.make_node(op_type, inputs, [out], name=f"{name}_{self._n}", **attrs))
+    return out
+
+
+def metadata(parts: PolicyParts) -> dict[str, str]:
+  """The ``metadata_props`` of the exported model (all values are strings; lists as JSON)."""
+  env, spec, cfg = parts.env, parts.env.spec, parts.env.config
+  ctrl = [int(i) for i in env._ctrl]
+  joints = list(spec.joints)
+  props = {
+      "format": "mash-policy/1",
+      "robot": spec.name,
+      "joint_order": json.dumps(joints),
+      "controlled_joints": json.dumps([joints[i] for i in ctrl]),
+      "controlled_index": json.dumps(ctrl),
+      "default_pose_rad": json.dumps([float(spec.default_pose[j]) for j in joints]),
+      "kp": json.dumps([float(spec.kp[j]) for j in joints]),
+      "kd": json.dumps([float(spec.kd[j]) for j in joints]),
+      "torque_limit_nm": json.dumps([float(spec.torque_limit[j]) for j in joints]),
+      "action_scale": repr(float(cfg.action_scale)),
+      "action_clip": repr(float(cfg.action_clip)),
+      "ctrl_dt_s": repr(float(cfg.ctrl_dt)),
+      "control_rate_hz": repr(1.0 / float(cfg.ctrl_dt)),
+      "gait_cycle_s": repr(float(cfg.gait_cycle_s)),
+      "phase_offsets": json.dumps([float(x) for x in np.asarray(env._phase_offset)]),
+      "limbs": json.dumps([l.name for l in spec.limbs]),
+      "temporal_director": json.dumps(bool(cfg.temporal_director)),
+      "agent_id": json.dumps(bool(cfg.agent_id)),
+      "partition": cfg.partition,
+      "fall_height_m": repr(float(cfg.fall_height)),
+      "fall_tilt_rad": repr(float(cfg.fall_tilt)),
+      "inputs": json.dumps(list(INPUTS)),
+      "outputs": json.dumps(list(OUTPUTS)),
+      "units": json.dumps({
+          "q": "rad, absolute, joint_order", "dq": "rad/s, joint_order",
+          "last_action": "previous action output (unitless)",
+          "gait_phase": "cycles in [0, 1); += ctrl_dt/gait_cycle_s per step unless standing",
+          "euler": "rad, roll pitch yaw (ZYX) of the torso",
+          "ang_vel": "rad/s, torso frame",
+          "command": "[standing 0/1, vx m/s, vy m/s, yaw rate rad/s]",
+          "action": "unitless, controlled_joints order",
+          "q_target": "rad, absolute, controlled_joints order; PD at every physics step: "
+                      "tau = clip(kp (q_target - q) - kd dq, -torque_limit, torque_limit); "
+                      "joints not controlled hold default_pose"}),
+  }
+  props.update({k: str(v) for k, v in parts.meta.items()})
+  return props
+
+
+def build_model(parts: PolicyParts) -> onnx.ModelProto:
+  """The ONNX model of ``parts`` (see module docstring for inputs and outputs)."""
+  env, cfg = parts.env, parts.env.config
+  lay = layout(env)
+  J, A, L = lay.n_joints, lay.n_actions, lay.n_limbs
+  g = _Graph()
+
+  # Feature row [N, width].
+  q_default = np.asarray(env._q_default, np.float32)
+  q_rel = g.op("Sub", ["q", g.const(q_default, "q_default")], "q_rel")
+  angle = g.op("Mul", [g.op("Add", ["gait_phase", g.const(lay.phase_offset, "phase_offset")],
+                            "limb_phase"), g.const(np.float32(2 * np.pi), "two_pi")], "limb_angle")
+  sin = g.op("Sin", [angle], "phase_sin")
+  cos = g.op("Cos", [angle], "phase_cos")
+  batch = g.op("Shape", ["q"], "batch", end=1)
+  const_shape = g.op("Concat", [batch, g.const([2], "two", np.int64)], "const_shape", axis=0)
+  const_cols = g.op("Expand", [g.const([[0.0, 1.0]], "zero_one"), const_shape], "const_cols")
+  features = g.op("Concat", [q_rel, "dq", "last_action", sin, cos, "euler", "ang_vel", "command",
+                             const_cols], "features", axis=1)
+
+  flat_parts, flat_index = [], []
+  for group in env.agent_groups:
+    name = group.name
+    obs = g.op("Gather", [features, g.const(lay.obs_index[name], f"{name}_obs_index", np.int64)],
+               f"{name}_obs", axis=1)  # [N, n_agents, obs_dim]
+    if parts.normalizer is not None:
+      stats = parts.normalizer[name]
+      mean = np.asarray(stats.mean, np.float32)
+      std = np.asarray(normalization.RunningStats(
+          jnp.asarray(stats.count), jnp.asarray(stats.mean), jnp.asarray(stats.m2)).std, np.float32)
+      obs = g.op("Div", [g.op("Sub", [obs, g.const(mean, f"{name}_obs_mean")], f"{name}_centred"),
+                         g.const(std, f"{name}_obs_std")], f"{name}_scaled")
+      obs = g.op("Clip", [obs, g.const(np.float32(-parts.obs_clip), "obs_clip_lo"),
+                          g.const(np.float32(parts.obs_clip), "obs_clip_hi")], f"{name}_normalized")
+    layers = _dense_layers(parts.params["actors"][name])
+    per_agent = layers[0][0].ndim == 3
+    x = obs
+    if per_agent:  # [N, n, 1, in] @ [n, in, out]: each agent its own weights
+      x = g.op("Unsqueeze", [x, g.const([2], "axis2", np.int64)], f"{name}_rows")
+    for k, (kernel, bias) in enumerate(layers):
+      if per_agent:
+        bias = bias[:, None, :]
+      x = g.op("Add", [g.op("MatMul", [x, g.const(kernel, f"{name}_W{k}")], f"{name}_mm{k}"),
+                       g.const(bias, f"{name}_b{k}")], f"{name}_dense{k}")
+      if k < len(layers) - 1:
+        x = g.op("Elu", [x], f"{name}_elu{k}", alpha=1.0)
+    if per_agent:
+      x = g.op("Squeeze", [x, g.const([2], "axis2", np.int64)], f"{name}_mean")
+    flat_parts.append(g.op("Reshape", [x, g.const([0, -1], "flat_shape", np.int64)],
+                           f"{name}_flat"))  # [N, n_agents * act_dim]
+    flat_index.extend(np.asarray(group.action_index).reshape(-1).tolist())
+
+  stacked = (flat_parts[0] if len(flat_parts) == 1
+             else g.op("Concat", flat_parts, "stacked_actions", axis=1))
+  if sorted(flat_index) != list(range(A)):
+    raise ExportError(f"agent action indices {flat_index} do not cover the {A} actions once")
+  order = np.argsort(np.asarray(flat_index))  # flat[j] = stacked[order[j]]
+  if np.array_equal(order, np.arange(A)):
+    g.op("Identity", [stacked], "action", out="action")
+  else:
+    g.op("Gather", [stacked, g.const(order, "action_order", np.int64)], "action", out="action",
+         axis=1)
+  clipped = g.op("Clip", ["action", g.const(np.float32(-cfg.action_clip), "action_clip_lo"),
+                          g.const(np.float32(cfg.action_clip), "action_clip_hi")], "action_clipped")
+  scaled = g.op("Mul", [g.const(np.float32(cfg.action_scale), "action_scale"), clipped], "scaled")
+  g.op("Add", [g.const(q_default[np.asarray(env._ctrl)], "default_ctrl"), scaled], "q_target",
+       out="q_target")
+
+  docs = {
+      "q": f"[N, {J}] absolute joint angles (rad), metadata joint_order",
+      "dq": f"[N, {J}] joint velocities (rad/s), metadata joint_order",
+      "last_action": f"[N, {A}] previous 'action' output (zeros at start)",
+      "gait_phase": "[N, 1] gait clock (cycles, [0, 1)); frozen while standing",
+      "euler": "[N, 3] torso roll, pitch, yaw (rad, ZYX)",
+      "ang_vel": "[N, 3] torso angular velocity, torso frame (rad/s)",
+      "command": "[N, 4] standing flag, vx (m/s), vy (m/s), yaw rate (rad/s)",
+      "action": f"[N, {A}] policy mean, metadata controlled_joints order",
+      "q_target": f"[N, {A}] PD targets (rad), metadata controlled_joints order",
+  }
+  sizes = {"q": J, "dq": J, "last_action": A, "gait_phase": 1, "euler": 3, "ang_vel": 3,
+           "command": 4, "action": A, "q_target": A}
+  value_info = lambda n: helper.make_tensor_value_info(n, TensorProto.FLOAT, ["N", sizes[n]],
+                                                       doc_string=docs[n])
+  graph = helper.make_graph(g.nodes, "mash_policy", [value_info(n) for n in INPUTS],
+                            [value_info(n) for n in OUTPUTS], initializer=g.inits)
+  model = helper.make_model(graph, producer_name="mash-jax", opset_imports=[
+      helper.make_opsetid("", OPSET)])
+  model.ir_version = IR_VERSION
+  model.doc_string = (
+      f"MASH policy ({parts.meta.get('algo', '?')}, {cfg.task}) for {env.spec.name}: "
+      f"{cfg.partition} partition, {len(env.agent_groups)} actor group(s). Run at "
+      f"{1.0 / cfg.ctrl_dt:g} Hz; inputs {', '.join(INPUTS)}; outputs {', '.join(OUTPUTS)}. "
+      "See metadata_props for joint order, units, default pose and PD gains.")
+  helper.set_model_props(model, metadata(parts))
+  onnx.checker.check_model(model, full_check=True)
+  return model
+
+
+def export_policy(run, path: str | os.PathLike, seed: int = 0) -> Path:
+  """Writes the ONNX policy of one seed of ``run`` (a :class:`mash.runs.LoadedRun`) to ``path``."""
+  path = Path(path)
+  model = build_model(policy_parts(run, seed))
+  path.parent.mkdir(parents=True, exist_ok=True)
+  onnx.save(model, str(path))
+  return path
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
+  """The metadata of an exported policy, JSON values decoded (numbers as floats)."""
+  model = onnx.load(str(path), load_external_data=False)
+  out = {}
+  for prop in model.metadata_props:
+    try:
+      out[prop.key] = json.loads(prop.value)
+    except json.JSONDecodeError:
+      out[prop.key] = prop.value
+  return out
+
+
+# ---------------------------------------------------------------------------- reference & check
+def random_inputs(env, n: int, seed: int = 0) -> dict[str, np.ndarray]:
+  """``n`` random but plausible observations (float32, leading batch dim) for the checks."""
+  rng = np.random.default_rng(seed)
+  J, A = env.n_joints, env.action_size
+  f32 = lambda x: np.asarray(x, np.float32)
+  standing = (rng.uniform(size=n) < 0.2).astype(np.float32)
+  return {
+      "q": f32(np.asarray(env._q_default)[None] + rng.normal(0.0, 0.3, (n, J))),
+      "dq": f32(rng.normal(0.0, 2.0, (n, J))),
+      "last_action": f32(rng.normal(0.0, 1.0, (n, A))),
+      "gait_phase": f32(rng.uniform(0.0, 1.0, (n, 1))),
+      "euler": f32(rng.uniform(-0.3, 0.3, (n, 3))),
+      "ang_vel": f32(rng.normal(0.0, 0.7, (n, 3))),
+      "command": f32(np.stack([standing, rng.uniform(-0.3, 0.8, n) * (1 - standing),
+                               rng.uniform(-0.2, 0.2, n) * (1 - standing),
+                               rng.uniform(-0.5, 0.5, n) * (1 - standing)], axis=1)),
+  }
+
+
+def reference_fn(parts: PolicyParts):
+  """``inputs {name: [N, ...]} -> (action [N, A], q_target [N, A])`` in JAX, through the env's
+  own ``observe`` and the networks' ``policy_apply`` (independent of the graph's gather tables)."""
+  from mash import networks as nets
+  env = parts.env
+  policy = nets.make_policy_fn(parts.networks, deterministic=True)
+  dr = randomize.nominal(env.mj_model.nbody, env.n_joints)
+
+  def one(q, dq, last_action, gait_phase, euler, ang_vel, command):
+    sensors = dict(q=q, dq=dq, euler=euler, ang_vel=ang_vel, lin_vel=jnp.zeros(3))
+    info = dict(command=command, phase=gait_phase[0], last_action=last_action,
+                push=jnp.zeros(5), dr=dr)
+    obs = env.observe(sensors, info, jnp.ones(2))
+    action = policy(parts.params, parts.normalizer, obs)
+    return action, env._full_target(action)[env._ctrl]
+
+  batched = jax.jit(jax.vmap(one))
+  return lambda inputs: tuple(np.asarray(x) for x in batched(*(jnp.asarray(inputs[k])
+                                                               for k in INPUTS)))
+
+
+def jax_reference(run, inputs: Mapping[str, np.ndarray], seed: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+  """What the exported graph must compute, in JAX.
+
+  Args:
+    run: a :class:`mash.runs.LoadedRun`, or :class:`PolicyParts`.
+    inputs: ``{name: float32 [N, ...]}`` keyed by :data:`INPUTS`.
+    seed: which seed of the run.
+
+  Returns:
+    ``(action [N, A], q_target [N, A])``.
+  """
+  parts = run if isinstance(run, PolicyParts) else policy_parts(run, seed)
+  return reference_fn(parts)(inputs)
+
+
+def onnx_session(path: str | os.PathLike):
+  """An onnxruntime CPU session of an exported policy (one thread: tiny MLP, low latency)."""
+  import onnxruntime as ort
+  opts = ort.SessionOptions()
+  opts.intra_op_num_threads = 1
+  opts.inter_op_num_threads = 1
+  return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+def verify(path: str | os.PathLike, run, n: int = 256, seed: int = 0,
+           input_seed: int = 0) -> dict[str, float]:
+  """Runs the ONNX file and the JAX reference on ``n`` random observations.
+
+  Returns:
+    ``{'action': max |diff|, 'q_target': max |diff|, 'n': n}``.
+  """
+  parts = run if isinstance(run, PolicyParts) else policy_parts(run, seed)
+  inputs = random_inputs(parts.env, n, input_seed)
+  ref_action, ref_target = reference_fn(parts)(inputs)
+  action, target = onnx_session(path).run(list(OUTPUTS), inputs)
+  return {"action": float(np.max(np.abs(action - ref_action))),
+          "q_target": float(np.max(np.abs(target - ref_target))), "n": n}
