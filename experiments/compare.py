@@ -76,7 +76,8 @@ def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str
                                    "table": table, "welch": tests, "paper": PAPER[task]}
 
 
-def plot_curves(run_dirs: dict, path: Path) -> None:
+def plot_curves(run_dirs: dict, path: Path | None = None, names: dict | None = None):
+  """Mean episode reward with a +-std band over seeds, one line per run directory."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
@@ -88,15 +89,17 @@ def plot_curves(run_dirs: dict, path: Path) -> None:
     curves = np.stack([p["episode_reward"][p["seed"] == s] for s in seeds])
     it = p["iteration"][p["seed"] == seeds[0]]
     mean, std = curves.mean(0), curves.std(0)
-    ax.plot(it, mean, label=NAMES[algo])
+    ax.plot(it, mean, label=(names or NAMES).get(algo, algo))
     ax.fill_between(it, mean - std, mean + std, alpha=0.25)
   ax.set_xlabel("iteration")
   ax.set_ylabel("mean episode reward")
   ax.legend()
   ax.grid(alpha=0.3)
   fig.tight_layout()
-  fig.savefig(path, dpi=120)
-  plt.close(fig)
+  if path is not None:
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+  return fig
 
 
 def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:

@@ -5,10 +5,14 @@ Examples:
   python -m experiments.bipedal --algo ppo --seeds 3 --preset smoke --out runs/ppo_smoke
   python -m experiments.armswing --set train.learning_rate=5e-4 --set env.action_scale=0.3
   python -m experiments.bipedal --resume runs/bipedal_mash_cpu_20261125-120000
+
+Exit status: 0 finished; 2 bad input (one line on stderr, nothing written); 130 / 143 stopped by
+Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 
 from experiments import common
@@ -34,6 +38,13 @@ def main(task: str, argv: list[str] | None = None) -> None:
     preset, backend = common.default_preset()
     chosen = "given" if args.preset else f"chosen from the backend '{backend}'"
     if args.resume:
+      given = [name for name, value, default in (
+          ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
+          ("--ablation", args.ablation, "none"), ("--set", args.set, []),
+          ("--out", args.out, None)) if value != default]
+      if given and not (given == ["--out"] and str(args.out) == str(args.resume)):
+        raise common.UserError(f"--resume continues a run with its own config; {', '.join(given)} "
+                               "cannot be combined with it")
       cfg = runs.load_config(args.resume)
       if cfg.task != task:
         raise common.UserError(f"--resume {args.resume} is a '{cfg.task}' run, not '{task}'")
@@ -53,3 +64,8 @@ def main(task: str, argv: list[str] | None = None) -> None:
     print(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
           f"{summary['wall_s']:.0f} s, final episode reward {summary['final_episode_reward']}; "
           f"run in {out}", flush=True)
+    if summary["interrupted"]:
+      print(f"continue with: python -m experiments.{task} --resume {out}", flush=True)
+  status = common.exit_status(summary)
+  if status:
+    sys.exit(status)

@@ -3,16 +3,22 @@
 A checkpoint step holds two items: ``state`` (params, optimizer state, normalizer statistics, env
 state, episode bookkeeping, rng, iteration; restored exactly, so training resumes bit-for-bit) and
 ``config`` (the :class:`mash.config.TrainConfig` as JSON). Orbax writes each step into a temporary
-directory and renames it when complete, so a crash mid-save leaves no step that ``latest_step`` would
-return: :func:`restore_latest` always picks the newest complete step. Only the newest ``max_to_keep``
-steps are kept. Typed PRNG keys in the state are stored as their raw data and re-wrapped on restore.
+directory and renames it when complete, so a crash mid-save leaves no step that ``all_steps`` would
+list. A step that is listed but does not restore (torn by a copy, a full disk, a stray edit) is
+skipped with a one-line warning on stderr: :func:`restore_latest` returns the newest step that
+restores, and raises :class:`CheckpointError` (one line) when steps exist but none restores. Nothing
+is ever deleted here. Only the newest ``max_to_keep`` steps are kept by :func:`make_manager`'s
+manager. Typed PRNG keys in the state are stored as their raw data and re-wrapped on restore.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import os
-from typing import Any, NamedTuple
+import sys
+from typing import Any, Sequence, Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +28,10 @@ import orbax.checkpoint as ocp
 from mash.config import TrainConfig, config_from_dict, config_to_dict
 
 
+class CheckpointError(ValueError):
+  """Checkpoint steps exist but none restores (one line, names the directory and the reason)."""
+
+
 class Restored(NamedTuple):
   """A restored checkpoint.
 
@@ -29,11 +39,13 @@ class Restored(NamedTuple):
     step: the checkpoint step (the iteration it was saved at, by convention).
     state: the train state, with the structure, shapes and dtypes of the template.
     config: the config saved with it.
+    skipped: newer steps that were tried first and did not restore (newest first).
   """
 
   step: int
   state: Any
   config: TrainConfig
+  skipped: tuple[int, ...] = ()
 
 
 def _is_empty(x: Any) -> bool:
@@ -48,11 +60,20 @@ def _to_flat(tree: Any) -> dict[str, Any]:
           for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0] if not _is_empty(leaf)}
 
 
-def _from_flat(flat: dict[str, Any], template: Any) -> Any:
-  """Inverse of :func:`_to_flat`, zero-size leaves rebuilt from the template."""
+def _from_flat(flat: dict[str, Any], template: Any, fields: Sequence[str] | None = None) -> Any:
+  """Inverse of :func:`_to_flat`, zero-size leaves rebuilt from the template. With ``fields``,
+  only the state's top-level fields of those names are read; every other leaf is zeros."""
   paths, treedef = jax.tree_util.tree_flatten_with_path(template)
-  leaves = [jax.numpy.zeros(leaf.shape, leaf.dtype) if _is_empty(leaf)
-            else flat[jax.tree_util.keystr(path)] for path, leaf in paths]
+  wanted = lambda key: fields is None or any(key.startswith(f'.{f}') for f in fields)
+  leaves = []
+  for path, leaf in paths:
+    key = jax.tree_util.keystr(path)
+    if _is_empty(leaf) or not wanted(key):
+      leaves.append(jnp.zeros(leaf.shape, leaf.dtype))
+    elif key not in flat:
+      raise KeyError(f'the checkpoint has no {key}')
+    else:
+      leaves.append(flat[key])
   return jax.tree.unflatten(treedef, leaves)
 
 
@@ -87,14 +108,22 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
   return saved
 
 
-def restore(manager: ocp.CheckpointManager, step: int, template_state: Any) -> Restored:
+def restore(manager: ocp.CheckpointManager, step: int, template_state: Any,
+            fields: Sequence[str] | None = None) -> Restored:
   """Restores checkpoint ``step`` into the structure of ``template_state`` (arrays or
-  ``jax.ShapeDtypeStruct``s, e.g. ``jax.eval_shape(trainer.init, key)``)."""
+  ``jax.ShapeDtypeStruct``s, e.g. ``jax.eval_shape(trainer.init, key)``).
+
+  With ``fields`` (e.g. ``('params', 'normalizer')``: all a policy needs) only those top-level
+  fields are read and the rest of the returned state is zeros, so a checkpoint stays usable for
+  evaluation and export after the env state's layout changed.
+  """
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct,
                           jax.tree.map(_key_to_data_shape, template_state))
-  restored = manager.restore(step, args=ocp.args.Composite(
-      state=ocp.args.StandardRestore(_to_flat(abstract)), config=ocp.args.JsonRestore()))
-  state = jax.tree.map(_match_commitment, _from_flat(restored['state'], abstract), template_state)
+  target = ocp.args.StandardRestore(_to_flat(abstract) if fields is None else None)
+  restored = manager.restore(step, args=ocp.args.Composite(state=target,
+                                                           config=ocp.args.JsonRestore()))
+  state = jax.tree.map(_match_commitment, _from_flat(restored['state'], abstract, fields),
+                       template_state)
   state = jax.tree.map(_data_to_key, state, template_state)
   return Restored(step=step, state=state, config=config_from_dict(restored['config']))
 
@@ -128,23 +157,63 @@ def _match_commitment(restored: jax.Array, template: Any) -> jax.Array:
   return restored if committed else jnp.asarray(np.asarray(restored))
 
 
-def restore_latest(directory: str | os.PathLike, template_state: Any) -> Restored | None:
-  """Restores the newest complete checkpoint under ``directory``.
+def _one_line(error: BaseException, limit: int = 160) -> str:
+  """``Type: first line of the message``, at most ``limit`` characters."""
+  lines = str(error).strip().splitlines()
+  text = f"{type(error).__name__}: {lines[0] if lines else ''}".rstrip(': ')
+  return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+@contextlib.contextmanager
+def _quiet_absl() -> Iterator[None]:
+  """Silences absl's log lines (Orbax logs every metadata file it cannot parse) while we try steps
+  and report failures ourselves, one line each."""
+  logger = logging.getLogger('absl')
+  level = logger.level
+  logger.setLevel(logging.CRITICAL)
+  try:
+    yield
+  finally:
+    logger.setLevel(level)
+
+
+def restore_latest(directory: str | os.PathLike, template_state: Any,
+                   fields: Sequence[str] | None = None) -> Restored | None:
+  """Restores the newest checkpoint under ``directory`` that restores.
+
+  Steps are tried newest first; one that fails (torn files, a template that does not match) is
+  reported on stderr as ``warning: ...`` and the next older one is tried. Nothing is deleted.
 
   Args:
     directory: a checkpoint directory written through :func:`make_manager` / :func:`save`.
     template_state: a train state (or its ``eval_shape``) giving structure, shapes and dtypes.
+    fields: restore only these top-level fields (see :func:`restore`).
 
   Returns:
-    The restored checkpoint, or ``None`` when ``directory`` holds no complete checkpoint.
+    The restored checkpoint (``skipped`` lists the newer steps that failed), or ``None`` when
+    ``directory`` holds no complete checkpoint.
+
+  Raises:
+    CheckpointError: checkpoint steps exist but none of them restores.
   """
   if not os.path.isdir(directory):
     return None
-  manager = make_manager(directory, max_to_keep=None)
-  try:
-    step = manager.latest_step()
-    if step is None:
-      return None
-    return restore(manager, step, template_state)
-  finally:
-    manager.close()
+  with _quiet_absl():
+    manager = make_manager(directory, max_to_keep=None)
+    try:
+      steps = sorted(manager.all_steps(), reverse=True)
+      first_error = None
+      for i, step in enumerate(steps):
+        try:
+          return restore(manager, step, template_state, fields)._replace(skipped=tuple(steps[:i]))
+        except Exception as e:  # noqa: BLE001 - whatever the cause, this step is unusable
+          first_error = first_error or _one_line(e)
+          if i + 1 < len(steps):  # when none restores, the CheckpointError alone says it all
+            print(f"warning: checkpoint step {step} in '{directory}' does not restore "
+                  f"({_one_line(e)}); trying step {steps[i + 1]}", file=sys.stderr, flush=True)
+    finally:
+      manager.close()
+  if steps:
+    raise CheckpointError(f"no checkpoint in '{directory}' restores (steps "
+                          f"{', '.join(map(str, steps))} tried; step {steps[0]}: {first_error})")
+  return None

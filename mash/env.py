@@ -6,6 +6,8 @@
 ``{group: [n_agents, obs_dim], 'critic': [critic_obs_size]}``. The step runs the PD loop in JAX on
 every physics substep, auto-resets finished episodes (``auto_reset``) and keeps the critic
 observation of the terminal state in ``info['next_critic_obs']`` so time-outs can be bootstrapped.
+A physics blow-up (NaN/inf in ``qpos``/``qvel``) ends the episode like a fall, with its reward,
+observations and ``next_critic_obs`` zeroed and ``info['nan_reset'] = 1`` so the trainer can mask it.
 """
 
 from __future__ import annotations
@@ -135,25 +137,42 @@ def _groups_for(spec: robots.RobotSpec, config: EnvConfig) -> tuple[tuple[str, t
   return (("body", acting),)
 
 
+def check_config(config: EnvConfig, robot_given: bool = False) -> None:
+  """Checks the choices of an :class:`EnvConfig` without building anything (cheap).
+
+  Args:
+    config: the config.
+    robot_given: a robot spec is passed alongside, so ``config.robot`` is not looked up.
+
+  Raises:
+    ValueError: one line naming the bad field, its value and what was expected.
+  """
+  for value, allowed, what in ((config.task, TASKS, "task"),
+                               (config.partition, PARTITIONS, "partition"),
+                               (config.critic, ("global", "local"), "critic")):
+    if value not in allowed:
+      raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
+  if not robot_given and config.robot not in robots.ROBOTS:
+    raise ValueError(f"robot '{config.robot}' is unknown; expected one of "
+                     f"{', '.join(robots.ROBOTS)}")
+  n_sub = config.ctrl_dt / config.physics.sim_dt
+  if abs(n_sub - round(n_sub)) > 1e-9 or round(n_sub) < 1:
+    raise ValueError(f"ctrl_dt {config.ctrl_dt} must be a whole multiple of sim_dt "
+                     f"{config.physics.sim_dt}")
+  if config.episode_length < 1:
+    raise ValueError(f"episode_length must be >= 1, got {config.episode_length}")
+
+
 class MashEnv(brax_base.Env):
   """A humanoid whose limbs are agents (see module docstring)."""
 
   def __init__(self, config: EnvConfig = EnvConfig(), spec: robots.RobotSpec | None = None):
-    if config.task not in TASKS:
-      raise ValueError(f"task '{config.task}' is unknown; expected one of {TASKS}")
-    if config.partition not in PARTITIONS:
-      raise ValueError(f"partition '{config.partition}' is unknown; expected one of {PARTITIONS}")
+    check_config(config, robot_given=spec is not None)
     if spec is None:
-      if config.robot not in robots.ROBOTS:
-        raise ValueError(f"robot '{config.robot}' is unknown; expected one of {tuple(robots.ROBOTS)}")
       spec = robots.ROBOTS[config.robot]
-    n_sub = config.ctrl_dt / config.physics.sim_dt
-    if abs(n_sub - round(n_sub)) > 1e-9 or round(n_sub) < 1:
-      raise ValueError(f"ctrl_dt {config.ctrl_dt} must be a whole multiple of sim_dt "
-                       f"{config.physics.sim_dt}")
     self.config = config
     self.spec = spec
-    self.n_substeps = int(round(n_sub))
+    self.n_substeps = int(round(config.ctrl_dt / config.physics.sim_dt))
     self.mj_model = robots.build_model(spec, config.physics)
     self.mjx_model = mjx.put_model(self.mj_model, impl="jax")
     m = self.mj_model
@@ -352,6 +371,7 @@ class MashEnv(brax_base.Env):
         "dr": dr,
         "truncation": jnp.zeros(()),
         "fall": jnp.zeros(()),
+        "nan_reset": jnp.zeros(()),
     }
     sensors = self.sensors(data)
     sensors["base_height"] = jnp.asarray(self.spec.base_height_target)
@@ -496,8 +516,11 @@ class MashEnv(brax_base.Env):
         last_torque=torque, air_time=air_time * (1.0 - contact), last_contact=contact,
         liftoff_xy=jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
         feet_xy=s["feet_xy"], push=push, truncation=truncation.astype(jnp.float32),
-        fall=fall.astype(jnp.float32))
-    obs = self.observe(s, info, contact)
+        fall=fall.astype(jnp.float32), nan_reset=(~finite).astype(jnp.float32))
+    # A blown-up state (NaN/inf) ends the episode and leaves no NaN behind: reward, reward terms,
+    # observations and the terminal critic observation are zeroed (NaN * 0 is NaN downstream), and
+    # info['nan_reset'] tells the trainer to mask the transition out of its update.
+    obs = jax.tree.map(lambda x: jnp.where(finite, x, 0.0), self.observe(s, info, contact))
     info["next_critic_obs"] = obs["critic"]
     reward = jnp.where(finite, reward, 0.0)
     metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in terms.items()}
@@ -507,7 +530,7 @@ class MashEnv(brax_base.Env):
       return next_state
     fresh = self.reset(k_reset)
     fresh.info.update(truncation=info["truncation"], fall=info["fall"],
-                      next_critic_obs=info["next_critic_obs"])
+                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
     pick = lambda new, old: jnp.where(done > 0, new, old)
     return next_state.replace(
         pipeline_state=jax.tree.map(pick, fresh.pipeline_state, data),

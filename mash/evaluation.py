@@ -53,14 +53,21 @@ def hip_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
   return np.array([env.spec.joints.index(n) for n in names])
 
 
+Perturbation = Callable[[Any, jax.Array, jax.Array], Any]
+
+
 def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.Array],
-            cfg: EvalConfig) -> dict[str, np.ndarray]:
+            cfg: EvalConfig, perturb: Perturbation | None = None,
+            values: np.ndarray | None = None) -> dict[str, np.ndarray]:
   """Runs ``cfg.num_episodes`` deterministic episodes.
 
   Args:
     env: an env built with :func:`eval_env_config`.
     policy: ``obs {group: [n_agents, obs_dim], ...} -> flat action [A]`` (unbatched).
     cfg: the evaluation settings.
+    perturb: optional ``(state, step, value) -> state`` applied before every step (robustness
+      sweeps: :func:`friction_and_push`).
+    values: ``[num_episodes, ...]`` the per-episode value handed to ``perturb``.
 
   Returns:
     ``actions [E,T,A]``, ``base_height [E,T]`` (torso above the soles, m), ``euler [E,T,3]``,
@@ -71,7 +78,10 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   steps = int(round(cfg.episode_s / env.dt))
   hips = hip_pitch_index(env)
 
-  def one_step(state, _):
+  def one_step(carry, t):
+    state, value = carry
+    if perturb is not None:
+      state = perturb(state, t, value)
     action = policy(state.obs)
     nxt = env.step(state, action)
     s = env.sensors(nxt.pipeline_state)
@@ -80,20 +90,79 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
                hip_pitch=s["q"][hips], hip_pitch_ref=(env._q_default + q_ref)[hips],
                forward_velocity=s["lin_vel"][0], done=nxt.done, contact=contact)
-    return nxt, out
+    return (nxt, value), out
 
-  def episode(key):
+  def episode(key, value):
     state = env.reset(key)
-    _, traj = jax.lax.scan(one_step, state, None, length=steps)
+    _, traj = jax.lax.scan(one_step, (state, value), jnp.arange(steps))
     return traj
 
   keys = jax.random.split(jax.random.PRNGKey(cfg.seed), cfg.num_episodes)
-  traj = jax.device_get(jax.jit(jax.vmap(episode))(keys))
+  values = jnp.zeros(cfg.num_episodes) if values is None else jnp.asarray(values, jnp.float32)
+  if values.shape[:1] != (cfg.num_episodes,):
+    raise ValueError(f"values must have a leading axis of {cfg.num_episodes} (one per episode), "
+                     f"got shape {values.shape}")
+  traj = jax.device_get(jax.jit(jax.vmap(episode))(keys, values))
   traj = {k: np.asarray(v) for k, v in traj.items()}
   done = traj.pop("done")
   traj["alive"] = (np.cumsum(done, axis=1) - done == 0).astype(np.float32)
   traj["dt"] = np.asarray(env.dt)
   return traj
+
+
+def friction_and_push(start_s: float, duration_s: float, dt: float) -> Perturbation:
+  """Perturbation of value ``[2]``: the episode's floor-sole friction is ``value[0]``, and a forward
+  push of ``value[1]`` newtons acts on the torso from ``start_s`` for ``duration_s`` (build the
+  env with randomization off, so no other push is drawn)."""
+  first, last = int(round(start_s / dt)), int(round((start_s + duration_s) / dt))
+
+  def perturb(state, step, value):
+    info = dict(state.info)
+    info["dr"] = info["dr"].replace(friction=value[0])
+    active = (step >= first) & (step < last)
+    info["push"] = jnp.zeros(5).at[0].set(jnp.where(active, value[1], 0.0))
+    return state.replace(info=info)
+
+  return perturb
+
+
+def robustness(env_config: env_lib.EnvConfig, policy: Callable, frictions: np.ndarray,
+               pushes: np.ndarray, episodes_per_value: int = 4,
+               cfg: EvalConfig = EvalConfig(episode_s=6.0), nominal_friction: float = 1.0,
+               push_start_s: float = 2.0, push_duration_s: float = 0.2) -> dict[str, dict]:
+  """Friction and push sweeps of one policy, in one jitted rollout.
+
+  Args:
+    env_config: the run's env config (evaluated on the nominal robot, no random pushes).
+    policy: as in :func:`rollout`.
+    frictions: ``[F]`` floor friction coefficients (no push).
+    pushes: ``[P]`` forward push forces (N), held ``push_duration_s`` from ``push_start_s``, at
+      ``nominal_friction``.
+    episodes_per_value: episodes per value (different gait phases).
+
+  Returns:
+    ``{'friction': ..., 'push': ...}``, each with ``values``, ``fall_rate`` and ``forward_speed``
+    (m/s over the steps alive), one entry per value.
+  """
+  frictions = np.asarray(frictions, np.float32).reshape(-1)
+  pushes = np.asarray(pushes, np.float32).reshape(-1)
+  grid = np.concatenate([np.stack([frictions, np.zeros_like(frictions)], -1),
+                         np.stack([np.full_like(pushes, nominal_friction), pushes], -1)])
+  cfg = dataclasses.replace(cfg, num_episodes=len(grid) * episodes_per_value,
+                            randomization=False)
+  env_cfg = eval_env_config(env_config, cfg)
+  env_cfg = dataclasses.replace(env_cfg, randomization=dataclasses.replace(
+      env_cfg.randomization, push_interval_s=1e5))
+  env = env_lib.MashEnv(env_cfg)
+  traj = rollout(env, policy, cfg, friction_and_push(push_start_s, push_duration_s, env.dt),
+                 np.repeat(grid, episodes_per_value, axis=0))
+  alive = traj["alive"].reshape(len(grid), episodes_per_value, -1)
+  speed = traj["forward_velocity"].reshape(alive.shape)
+  fall = 1.0 - alive.min(axis=-1).mean(axis=-1)
+  fwd = (speed * alive).sum(axis=(1, 2)) / np.maximum(alive.sum(axis=(1, 2)), 1)
+  n = len(frictions)
+  return {"friction": {"values": frictions, "fall_rate": fall[:n], "forward_speed": fwd[:n]},
+          "push": {"values": pushes, "fall_rate": fall[n:], "forward_speed": fwd[n:]}}
 
 
 def evaluate(traj: dict[str, np.ndarray], command_vx: float,

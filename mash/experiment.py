@@ -65,7 +65,7 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
                                actor_hidden=(64, 64), critic_hidden=(64, 64),
                                learning_rate=1e-3)
   if preset == "cpu":
-    return dataclasses.replace(base, num_iterations=400, unroll_length=24, num_envs=256,
+    return dataclasses.replace(base, num_iterations=1000, unroll_length=24, num_envs=256,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
                                actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64),
                                learning_rate=1e-3)
@@ -106,8 +106,19 @@ def make_config(task: str, algo: str = "mash", preset: str = "cpu", seeds: int =
   """The resolved config of a run: preset, then ablation, then ``overrides``.
 
   Raises:
-    ConfigError: an unknown task, algo, preset or ablation, or a malformed override.
+    ConfigError: an unknown task, algo, preset or ablation, a malformed override, or an override
+      that leaves the config invalid (see :func:`check`).
   """
+  _check_choices(task, algo, preset, ablation, seeds)
+  cfg = ExperimentConfig(task=task, algo=algo, preset=preset, ablation=ablation, seeds=seeds,
+                         env=_preset_env(preset, task, algo), train=_preset_train(preset))
+  cfg = _apply_ablation(cfg)
+  cfg = apply_overrides(cfg, overrides)
+  check(cfg)
+  return cfg
+
+
+def _check_choices(task: str, algo: str, preset: str, ablation: str, seeds: int) -> None:
   for value, allowed, what in ((task, env_lib.TASKS, "task"), (algo, ALGOS, "algo"),
                                (preset, PRESETS, "preset"), (ablation, ABLATIONS, "ablation")):
     if value not in allowed:
@@ -116,15 +127,27 @@ def make_config(task: str, algo: str = "mash", preset: str = "cpu", seeds: int =
     raise ConfigError(f"seeds must be >= 1, got {seeds}")
   if ablation != "none" and algo != "mash":
     raise ConfigError(f"ablation '{ablation}' applies to --algo mash, not '{algo}'")
-  cfg = ExperimentConfig(task=task, algo=algo, preset=preset, ablation=ablation, seeds=seeds,
-                         env=_preset_env(preset, task, algo), train=_preset_train(preset))
-  cfg = _apply_ablation(cfg)
-  cfg = apply_overrides(cfg, overrides)
+
+
+def check(cfg: ExperimentConfig) -> None:
+  """Checks a whole config without building anything (so that ``--set`` mistakes are one line,
+  before any file is written).
+
+  Raises:
+    ConfigError: names the bad field and what was expected.
+  """
+  _check_choices(cfg.task, cfg.algo, cfg.preset, cfg.ablation, cfg.seeds)
+  for name in ("checkpoint_every", "keep_checkpoints"):
+    if getattr(cfg, name) < 1:
+      raise ConfigError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+  try:
+    env_lib.check_config(cfg.env)
+  except ValueError as e:
+    raise ConfigError(f"env.{e}") from None
   try:
     train_config.derived(cfg.train)
   except ValueError as e:
     raise ConfigError(str(e)) from None
-  return cfg
 
 
 def _coerce(text: str, like: Any, path: str) -> Any:
@@ -203,11 +226,13 @@ def _from_dict(cls: type, data: Mapping[str, Any]) -> Any:
 
 
 def from_json(text: str) -> ExperimentConfig:
-  """Parses a ``config.json``; raises ConfigError when it is not one."""
+  """Parses a ``config.json``; raises ConfigError when it is not one, or not a valid one."""
   try:
-    return _from_dict(ExperimentConfig, json.loads(text))
-  except (json.JSONDecodeError, TypeError, AttributeError) as e:
+    cfg = _from_dict(ExperimentConfig, json.loads(text))
+  except (json.JSONDecodeError, TypeError, AttributeError, ValueError) as e:
     raise ConfigError(f"config.json is not an experiment config ({e})") from None
+  check(cfg)
+  return cfg
 
 
 def make_env(cfg: ExperimentConfig) -> env_lib.MashEnv:

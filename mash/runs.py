@@ -4,16 +4,22 @@ A run directory holds ``config.json`` (the resolved :class:`ExperimentConfig`), 
 (one row per iteration, mean over seeds; ``progress_seeds.csv`` has one row per seed),
 TensorBoard event files, Orbax ``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
 Between jitted calls the host only logs, checkpoints and draws the progress bar. SIGINT/SIGTERM
-end the run after the call in flight, with a complete checkpoint to ``--resume`` from.
+end the run after the call in flight, with a complete checkpoint to ``--resume`` from (a second
+signal aborts at once; Orbax's atomic step directories still leave the last complete checkpoint
+loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
+checkpoint step that does not restore is skipped with a warning (:func:`mash.checkpoint.restore_latest`);
+on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
@@ -34,6 +40,14 @@ class RunError(ValueError):
 
 def is_run(path: Path) -> bool:
   return (path / "config.json").is_file()
+
+
+def _write_atomic(path: Path, text: str) -> None:
+  """Writes ``text`` to ``path`` through a temporary file and a rename: a crash leaves either the
+  old file or the new one, never a truncated one."""
+  tmp = path.with_name(f".{path.name}.tmp")
+  tmp.write_text(text)
+  os.replace(tmp, path)
 
 
 def load_config(run_dir: str | os.PathLike) -> experiment.ExperimentConfig:
@@ -89,13 +103,27 @@ class LoadedRun(NamedTuple):
   iteration: int
 
 
+def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentConfig,
+                fields: tuple[str, ...] | None = None) -> checkpoint.Restored:
+  """The newest checkpoint of a run that restores (older ones are tried, with a warning, when
+  newer ones are torn); RunError (one line) when there is none."""
+  try:
+    restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", state_shapes(trainer, cfg),
+                                         fields)
+  except checkpoint.CheckpointError as e:
+    raise RunError(str(e)) from None
+  if restored is None:
+    raise RunError(f"'{run_dir}' has no complete checkpoint (it was stopped before its first "
+                   "checkpoint was saved)")
+  return restored
+
+
 def load_run(run_dir: str | os.PathLike) -> LoadedRun:
-  """Loads the latest complete checkpoint of a run; RunError when there is none."""
+  """Loads the latest checkpoint of a run that restores; RunError when there is none."""
   cfg = load_config(run_dir)
   trainer = build_trainer(cfg)
-  restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", state_shapes(trainer, cfg))
-  if restored is None:
-    raise RunError(f"'{run_dir}' has no complete checkpoint")
+  # A policy needs only params and normalizer: the env state's layout may have changed since.
+  restored = restore_run(run_dir, trainer, cfg, fields=("params", "normalizer"))
   state = restored.state
   norm = state.normalizer if cfg.train.normalize_observations else None
   return LoadedRun(cfg, trainer, state.params, norm, int(restored.step))
@@ -108,14 +136,16 @@ def seed_slice(tree: Any, seed: int, seeds: int) -> Any:
 
 @contextlib.contextmanager
 def _stop_on_signals() -> Iterator[dict[str, bool]]:
-  """Turns SIGINT/SIGTERM into a flag the loop checks between jitted calls."""
-  flag = {"stop": False}
+  """Turns SIGINT/SIGTERM into a flag the loop checks between jitted calls (``flag['signal']``
+  names the first signal)."""
+  flag: dict[str, Any] = {"stop": False, "signal": None}
 
   def handler(signum, frame):
     if flag["stop"]:  # a second signal: stop now
       raise KeyboardInterrupt
     flag["stop"] = True
-    print(f"\nsignal {signal.Signals(signum).name}: finishing the current call and saving a "
+    flag["signal"] = signal.Signals(signum).name
+    print(f"\nsignal {flag['signal']}: finishing the current call and saving a "
           "checkpoint (send again to abort)", flush=True)
 
   old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -154,10 +184,12 @@ class _CsvLog:
         reader = csv.DictReader(f)
         self.header = reader.fieldnames
         kept = [r for r in reader if int(r["iteration"]) <= keep_until]
-      with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=self.header)
+      if self.header is not None:
+        text = io.StringIO(newline="")
+        w = csv.DictWriter(text, fieldnames=self.header)
         w.writeheader()
         w.writerows(kept)
+        _write_atomic(path, text.getvalue())
 
   def write(self, rows: list[dict[str, Any]]) -> None:
     if not rows:
@@ -199,43 +231,63 @@ def plot_reward_curve(run_dir: Path) -> None:
   plt.close(fig)
 
 
+def _set_aside(out: Path, steps: tuple[int, ...]) -> None:
+  """Moves checkpoint steps that do not restore out of the way of new saves (Orbax would silently
+  skip saving a step whose directory exists), into ``checkpoints_unrestorable/``."""
+  for step in steps:
+    dest = out / "checkpoints_unrestorable" / str(step)
+    if dest.exists():
+      dest = dest.with_name(f"{step}-{time.strftime('%Y%m%d-%H%M%S')}")
+    dest.parent.mkdir(exist_ok=True)
+    os.replace(out / "checkpoints" / str(step), dest)
+    print(f"warning: moved checkpoint step {step}, which does not restore, to '{dest}'",
+          file=sys.stderr, flush=True)
+
+
 def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
-          show_progress: bool = True, max_calls: int | None = None) -> dict[str, Any]:
+          show_progress: bool = True, max_calls: int | None = None,
+          trainer: Any = None) -> dict[str, Any]:
   """Trains ``cfg`` into ``out_dir`` (or continues the run there when ``resume``).
 
   Args:
     cfg: the resolved experiment config (on resume, the run's own config).
-    out_dir: the run directory.
-    resume: continue from the latest complete checkpoint in ``out_dir``.
+    out_dir: the run directory; refused when it already holds a run and ``resume`` is false.
+    resume: continue from the latest checkpoint in ``out_dir`` that restores.
     show_progress: draw a progress bar.
     max_calls: stop after this many jitted calls (tests, interrupted-run demos).
+    trainer: ``build_trainer(cfg)`` made beforehand, to reuse its compiled programs (tests).
 
   Returns:
-    The summary written to ``summary.json``.
+    The summary written to ``summary.json``; ``interrupted`` is true (and ``signal`` names the
+    signal) when SIGINT/SIGTERM stopped the run early.
+
+  Raises:
+    RunError: ``out_dir`` cannot be used as asked (one line).
   """
   from tqdm import tqdm
   from tensorboardX import SummaryWriter
 
   out = Path(out_dir)
+  if out.exists() and not out.is_dir():
+    raise RunError(f"'{out}' is a file, not a run directory")
   if resume:
     cfg = load_config(out)
   elif out.exists() and is_run(out):
     raise RunError(f"'{out}' already holds a run; pass --resume {out} to continue it, or choose "
                    "another --out")
-  out.mkdir(parents=True, exist_ok=True)
   derived = train_lib.derived(cfg.train)
 
-  trainer = build_trainer(cfg)
+  trainer = build_trainer(cfg) if trainer is None else trainer
   start_iteration = 0
   if resume:
-    restored = checkpoint.restore_latest(out / "checkpoints", state_shapes(trainer, cfg))
-    if restored is None:
-      raise RunError(f"'{out}' has no complete checkpoint to resume from")
+    restored = restore_run(out, trainer, cfg)
+    _set_aside(out, restored.skipped)
     state = restored.state
     start_iteration = int(np.asarray(jax.device_get(state.iteration)).reshape(-1)[0])
   else:
     state = init_state(trainer, cfg)
-    (out / "config.json").write_text(experiment.to_json(cfg))
+    out.mkdir(parents=True, exist_ok=True)
+    _write_atomic(out / "config.json", experiment.to_json(cfg))
   manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
 
   progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
@@ -252,37 +304,41 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   wall0 = time.perf_counter() - float(previous.get("wall_s", 0.0))
   compile_s, call_s, iteration = None, [], start_iteration
   stopped = False
-  with _stop_on_signals() as flag:
-    for call in range(total_calls):
-      t0 = time.perf_counter()
-      state, metrics = trainer.train_epoch(state)
-      metrics = jax.device_get(metrics)
-      dt = time.perf_counter() - t0
-      if compile_s is None:
-        compile_s = dt
-      else:
-        call_s.append(dt)
-      rows, seed_rows = _rows(metrics, iteration, derived.env_steps_per_iteration,
-                              time.perf_counter() - wall0, cfg.seeds)
-      iteration = rows[-1]["iteration"]
-      progress.write(rows)
-      seed_log.write(seed_rows)
-      for r in rows:
-        for k, v in r.items():
-          if k not in ("iteration", "env_steps", "wall_s"):
-            writer.add_scalar(k, v, r["iteration"])
-      last = call == total_calls - 1 or flag["stop"]
-      if (call + 1) % cfg.checkpoint_every == 0 or last:
-        checkpoint.save(manager, iteration, state, cfg.train)
-      sps = derived.env_steps_per_call / dt
-      bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
-      bar.update(len(rows))
-      if flag["stop"]:
-        stopped = True
-        break
-  bar.close()
-  manager.close()
-  writer.close()
+  try:
+    with _stop_on_signals() as flag:
+      for call in range(total_calls):
+        t0 = time.perf_counter()
+        state, metrics = trainer.train_epoch(state)
+        metrics = jax.device_get(metrics)
+        dt = time.perf_counter() - t0
+        if compile_s is None:
+          compile_s = dt
+        else:
+          call_s.append(dt)
+        rows, seed_rows = _rows(metrics, iteration, derived.env_steps_per_iteration,
+                                time.perf_counter() - wall0, cfg.seeds)
+        iteration = rows[-1]["iteration"]
+        progress.write(rows)
+        seed_log.write(seed_rows)
+        for r in rows:
+          for k, v in r.items():
+            if k not in ("iteration", "env_steps", "wall_s"):
+              writer.add_scalar(k, v, r["iteration"])
+        last = call == total_calls - 1 or flag["stop"]
+        if (call + 1) % cfg.checkpoint_every == 0 or last:
+          if not checkpoint.save(manager, iteration, state, cfg.train):
+            print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
+                  f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
+        sps = derived.env_steps_per_call / dt
+        bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
+        bar.update(len(rows))
+        if flag["stop"]:
+          stopped = True
+          break
+  finally:  # also on an abort (a second signal): Orbax saves are atomic anyway
+    bar.close()
+    manager.close()
+    writer.close()
   plot_reward_curve(out)
   steady = float(np.median(call_s)) if call_s else None
   summary = {
@@ -294,7 +350,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
       "train_env_steps_per_s": (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
       "final_episode_reward": read_progress(out)["episode_reward"][-1].item() if iteration else None,
       "interrupted": stopped,
+      "signal": flag["signal"] if stopped else None,
       "backend": jax.default_backend(), "devices": jax.device_count(),
   }
-  (out / "summary.json").write_text(json.dumps(summary, indent=2))
+  _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
   return summary

@@ -7,7 +7,8 @@ opposite leg). The reward is shared (tracking + alive bonus + action-smoothness 
 ends by a "fall" when any limb strays too far from its target, or by time-out at a fixed length.
 The env auto-resets inside ``step`` and reports the terminal critic observation in
 ``info['next_critic_obs']``, exactly like the real env, so the trainer, tests and notebooks run
-in seconds on CPU.
+in seconds on CPU. Like the real env, a non-finite state (inject one by setting ``q`` to NaN in a
+state) ends the episode with zero reward and finite observations and sets ``info['nan_reset']``.
 
 Two partitions of the same task: ``'mash'`` (one group per limb type, agents stacked, one-hot ids in
 the observations) and ``'ppo'`` (one agent ``'body'`` seeing every limb's observation, no ids).
@@ -179,7 +180,7 @@ class ToyEnv:
     obs = self._obs(ps)
     zero = jnp.zeros(())
     metrics = {'reward/tracking': zero, 'reward/alive': zero, 'reward/smoothness': zero}
-    info = {'truncation': zero, 'next_critic_obs': obs['critic']}
+    info = {'truncation': zero, 'next_critic_obs': obs['critic'], 'nan_reset': zero}
     return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
   def step(self, state: State, action: jax.Array) -> State:
@@ -198,8 +199,11 @@ class ToyEnv:
         'reward/alive': jnp.asarray(cfg.alive, jnp.float32),
         'reward/smoothness': cfg.smoothness * jnp.mean(jnp.square(a - ps.prev_action)),
     }
+    # A non-finite state is a blow-up: a fall with zero reward, the terminal obs zeroed.
+    finite = jnp.all(jnp.isfinite(q))
+    terms = {k: jnp.where(finite, v, 0.0) for k, v in terms.items()}
     reward = sum(terms.values())
-    fell = jnp.any(limb_err > cfg.fall_error**2)
+    fell = jnp.any(limb_err > cfg.fall_error**2) | ~finite
     timeout = nxt.t >= cfg.episode_length
     done = (fell | timeout).astype(jnp.float32)
     truncation = (timeout & ~fell).astype(jnp.float32)
@@ -211,7 +215,9 @@ class ToyEnv:
                              phase=restart_phase, t=jnp.zeros((), jnp.int32))
     ps_out = jax.tree.map(lambda r, n: jnp.where(done > 0, r, n), fresh, nxt)
     obs = self._obs(ps_out)
-    info = {'truncation': truncation, 'next_critic_obs': self._critic_obs(nxt)}
+    info = {'truncation': truncation,
+            'next_critic_obs': jnp.where(finite, self._critic_obs(nxt), 0.0),
+            'nan_reset': (~finite).astype(jnp.float32)}
     return State(pipeline_state=ps_out, obs=obs, reward=reward, done=done, metrics=terms, info=info)
 
 

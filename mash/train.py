@@ -13,7 +13,8 @@ The same functions serve ``jit(vmap(...))`` over seeds (:func:`make_seed_trainer
 over an env-batch mesh axis (:func:`make_sharded_train_epoch`): when the trainer is built with an
 ``axis_name``, gradients, observation statistics, advantage statistics, episode statistics and logged
 metrics are averaged over that axis, and each device draws its own random numbers. The MASH and
-single-agent PPO runs differ only in the env's agent partition.
+single-agent PPO runs differ only in the env's agent partition. A step into a blown-up physics state
+(NaN/inf) is masked out of GAE and the loss and counted in the per-iteration metric ``nan_resets``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ class MultiAgentEnv(Protocol):
   - ``info['truncation']``: ``[]`` 1.0 when it ended by time-out only (the value is bootstrapped);
   - ``info['next_critic_obs']``: ``[critic_obs_size]`` critic obs of the state reached, before the
     automatic reset (equal to ``obs['critic']`` when not done);
+  - ``info['nan_reset']`` (optional): ``[]`` 1.0 when the step blew up (NaN/inf state) and the env
+    was reset; such a step must also be ``done`` and carry finite ``reward``/``obs``. The trainer
+    masks it out of GAE and the loss (as it does any step whose reward or ``next_critic_obs`` is
+    not finite) and logs the count as ``nan_resets``;
   - ``metrics``: ``{name: []}`` scalars (``reward/<term>`` ...), logged as per-iteration means.
   """
 
@@ -121,6 +126,8 @@ class Transition(NamedTuple):
     truncation: ``[B]`` ended by time-out.
     next_critic_obs: ``[B, C]`` critic obs of the state reached (terminal one when done).
     env_metrics: ``{name: [B]}`` the env's per-step metrics (``reward/<term>`` ...).
+    nan_reset: ``[B]`` 1.0 where the step blew up (non-finite state, reward or critic obs): masked
+      out of GAE and the loss.
   """
 
   obs: Mapping[str, jax.Array]
@@ -131,6 +138,7 @@ class Transition(NamedTuple):
   truncation: jax.Array
   next_critic_obs: jax.Array
   env_metrics: Mapping[str, jax.Array]
+  nan_reset: jax.Array
 
 
 class RolloutCarry(NamedTuple):
@@ -222,6 +230,22 @@ def _sum(x: jax.Array, axis_name: str | None) -> jax.Array:
   return s if axis_name is None else jax.lax.psum(s, axis_name)
 
 
+def _screen_blowups(state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """Reward ``[B]``, ``next_critic_obs`` ``[B, ...]`` and the blow-up mask ``[B]`` of a batched step.
+
+  A step is a blow-up when the env says so (``info['nan_reset']``) or when its reward or terminal
+  critic observation is not finite; its reward and critic observation are zeroed so that no NaN
+  reaches GAE (``0 * NaN`` is NaN).
+  """
+  reward, next_critic_obs = state.reward, state.info['next_critic_obs']
+  flagged = state.info.get('nan_reset', jnp.zeros_like(reward)) > 0
+  obs_finite = jnp.all(jnp.isfinite(next_critic_obs.reshape(reward.shape + (-1,))), axis=-1)
+  blown = flagged | ~jnp.isfinite(reward) | ~obs_finite
+  mask = blown.reshape(blown.shape + (1,) * (next_critic_obs.ndim - blown.ndim))
+  return (jnp.where(blown, 0.0, reward), jnp.where(mask, 0.0, next_critic_obs),
+          blown.astype(jnp.float32))
+
+
 def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = None,
                compiler_options: Mapping[str, Any] | None = None) -> Trainer:
   """Builds the trainer for ``env``'s agent partition.
@@ -275,7 +299,8 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
           groups, {g.name: nets.gaussian_log_prob(dists[g.name], actions[g.name]) for g in groups})
       next_state = batch_step(carry.env_state, assemble_action(groups, actions))
       done = next_state.done
-      ret = carry.episode_return + next_state.reward
+      reward, next_critic_obs, nan_reset = _screen_blowups(next_state)
+      ret = carry.episode_return + reward
       length = carry.episode_length + 1.0
       carry = RolloutCarry(env_state=next_state, episode_return=ret * (1.0 - done),
                            episode_length=length * (1.0 - done),
@@ -283,9 +308,9 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
                            done_length=carry.done_length + jnp.sum(length * done),
                            done_count=carry.done_count + jnp.sum(done))
       transition = Transition(
-          obs=obs, actions=actions, log_probs=log_probs, reward=next_state.reward, done=done,
-          truncation=next_state.info['truncation'],
-          next_critic_obs=next_state.info['next_critic_obs'], env_metrics=next_state.metrics)
+          obs=obs, actions=actions, log_probs=log_probs, reward=reward, done=done,
+          truncation=next_state.info['truncation'], next_critic_obs=next_critic_obs,
+          env_metrics=next_state.metrics, nan_reset=nan_reset)
       return carry, transition
 
     zero = jnp.zeros((), jnp.float32)
@@ -343,11 +368,15 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
 
     values = networks.value_apply(state.params, normalizer, tr.obs['critic'])
     next_values = networks.value_apply(state.params, normalizer, tr.next_critic_obs)
+    # Steps into a blown-up state: zero advantage (the episode counts as cut before them, not as a
+    # fall) and weight 0 in the advantage statistics and the loss.
+    valid = 1.0 - tr.nan_reset
     advantages, returns = losses.compute_gae(tr.reward, values, next_values, tr.done,
-                                             tr.truncation, config.gamma, config.gae_lambda)
+                                             tr.truncation, config.gamma, config.gae_lambda,
+                                             valid=valid)
     batch = jax.tree.map(flatten_time, losses.LossBatch(
         obs=tr.obs, actions=tr.actions, log_probs=tr.log_probs, values=values,
-        advantages=advantages, returns=returns))
+        advantages=advantages, returns=returns, weights=valid))
     opt, loss_metrics = sgd(OptimizerState(state.params, state.opt_state), normalizer, batch,
                             sgd_key)
     params = opt.params
@@ -367,6 +396,7 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
         'episodes_completed': done_count,
         'step_reward': _mean(tr.reward, axis_name),
         'done_rate': _mean(tr.done, axis_name),
+        'nan_resets': _sum(tr.nan_reset, axis_name),
         'value_mean': _mean(values, axis_name),
         'action_std': nets.mean_action_std(params),
         **{k: _mean(v, axis_name) for k, v in tr.env_metrics.items()},

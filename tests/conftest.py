@@ -2,9 +2,20 @@
 
 The learner tests (``test_losses``, ``test_networks``, ``test_train``) use the tiny toy env
 (:mod:`mash.toy_env`) and tiny networks so that every jitted program compiles in seconds on CPU.
+
+JAX's persistent compilation cache is on for the whole session, in ``.jax_cache/`` at the repository
+root (git-ignored; a ``JAX_COMPILATION_CACHE_DIR`` set by the caller wins). The settings are also put
+in the environment, so every subprocess and notebook kernel a test starts shares the cache: a CLI
+run of the smoke preset loads the program the ``smoke_run`` fixture compiled (measured on 2 busy
+CPU cores: ~210 s cold, ~40 s from the cache, most of it tracing and lowering). Entries are keyed by
+the program, the compile options and the JAX version, so stale ones are never used, only kept:
+delete ``.jax_cache/`` to reclaim the space.
 """
 
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -15,6 +26,16 @@ from mash.config import TrainConfig
 from mash.toy_env import make_toy_env
 
 TOY_CALLS = 6  # jitted calls of the learning run (x iterations_per_call iterations).
+
+REPO = Path(__file__).resolve().parents[1]
+JAX_CACHE_DIR = os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', str(REPO / '.jax_cache'))
+os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS', '0')
+os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES', '-1')
+jax.config.update('jax_compilation_cache_dir', JAX_CACHE_DIR)
+jax.config.update('jax_persistent_cache_min_compile_time_secs',
+                  float(os.environ['JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS']))
+jax.config.update('jax_persistent_cache_min_entry_size_bytes',
+                  int(os.environ['JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES']))
 
 
 @pytest.fixture(scope='session')
@@ -56,13 +77,26 @@ def learning_run(mash_trainer):
 
 
 @pytest.fixture(scope='session')
-def smoke_run(tmp_path_factory):
+def smoke_config():
+  """The ``smoke`` preset of bipedal MASH."""
+  from mash import experiment
+  return experiment.make_config('bipedal', 'mash', 'smoke')
+
+
+@pytest.fixture(scope='session')
+def smoke_trainer(smoke_config):
+  """The trainer of ``smoke_config``: its programs compile once and serve every in-process run."""
+  from mash import runs
+  return runs.build_trainer(smoke_config)
+
+
+@pytest.fixture(scope='session')
+def smoke_run(tmp_path_factory, smoke_config, smoke_trainer):
   """A real MJX training run of the ``smoke`` preset (bipedal MASH), trained once per session.
 
   Returns the run directory (``config.json``, ``progress.csv``, ``checkpoints/``, ...).
   """
-  from mash import experiment, runs
+  from mash import runs
   out = tmp_path_factory.mktemp('runs') / 'smoke_bipedal_mash'
-  cfg = experiment.make_config('bipedal', 'mash', 'smoke')
-  runs.train(cfg, out, show_progress=False)
+  runs.train(smoke_config, out, show_progress=False, trainer=smoke_trainer)
   return out
