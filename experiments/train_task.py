@@ -6,6 +6,12 @@ Examples:
   python -m experiments.armswing --set train.learning_rate=5e-4 --set env.action_scale=0.3
   python -m experiments.bipedal --resume runs/bipedal_mash_cpu_20261125-120000
 
+Devices: one process trains on every device it sees (several GPUs: the env batch is split over
+them). Several processes (one per host, or per CPU core) run the SAME command, each with
+--coordinator HOST:PORT (process 0's address) --num-processes N --process-id I (0 .. N-1), or the
+environment variables MASH_COORDINATOR, MASH_NUM_PROCESSES, MASH_PROCESS_ID; process 0 writes the
+run and prints. See docs/multi_device.md.
+
 Exit status: 0 finished; 2 bad input (one line on stderr, nothing written); 130 / 143 stopped by
 Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
 """
@@ -31,9 +37,12 @@ def main(task: str, argv: list[str] | None = None) -> None:
   p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                  help="override a config field, e.g. train.learning_rate=1e-3 (repeatable)")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  common.add_distributed_args(p)
   args = p.parse_args(argv)
 
   with common.user_errors():
+    primary = common.join_processes(args)  # before any other JAX work
+    say = print if primary else (lambda *a, **k: None)
     from mash import experiment, runs
     preset, backend = common.default_preset()
     chosen = "given" if args.preset else f"chosen from the backend '{backend}'"
@@ -48,24 +57,26 @@ def main(task: str, argv: list[str] | None = None) -> None:
       cfg = runs.load_config(args.resume)
       if cfg.task != task:
         raise common.UserError(f"--resume {args.resume} is a '{cfg.task}' run, not '{task}'")
-      print(f"resuming {args.resume}: task {cfg.task}, algo {cfg.algo}, preset {cfg.preset}",
-            flush=True)
+      say(f"resuming {args.resume}: task {cfg.task}, algo {cfg.algo}, preset {cfg.preset}"
+          f"{common.devices_note()}", flush=True)
       summary = runs.train(cfg, args.resume, resume=True, show_progress=not args.no_progress)
       out = args.resume
     else:
       preset = args.preset or preset
       cfg = experiment.make_config(task, args.algo, preset, args.seeds, args.ablation, args.set)
-      out = args.out or f"runs/{task}_{cfg.algo}_{preset}_{time.strftime('%Y%m%d-%H%M%S')}"
-      print(f"preset: {preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
-            f"{cfg.train.num_envs} envs x {cfg.train.unroll_length} steps x "
-            f"{cfg.train.num_iterations} iterations -> {out}", flush=True)
+      stamp = time.strftime('%Y%m%d-%H%M%S', time.localtime(common.shared_time()))
+      out = args.out or f"runs/{task}_{cfg.algo}_{preset}_{stamp}"
+      say(f"preset: {preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
+          f"{cfg.train.num_envs} envs x {cfg.train.unroll_length} steps x "
+          f"{cfg.train.num_iterations} iterations -> {out}{common.devices_note()}", flush=True)
       summary = runs.train(cfg, out, show_progress=not args.no_progress)
     state = "interrupted at" if summary["interrupted"] else "finished"
-    print(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
-          f"{summary['wall_s']:.0f} s, final episode reward {summary['final_episode_reward']}; "
-          f"run in {out}", flush=True)
+    say(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
+        f"{summary['wall_s']:.0f} s, final episode reward {summary['final_episode_reward']}; "
+        f"run in {out}", flush=True)
     if summary["interrupted"]:
-      print(f"continue with: python -m experiments.{task} --resume {out}", flush=True)
+      again = " (on every process, with the same flags)" if summary.get("processes", 1) > 1 else ""
+      say(f"continue with: python -m experiments.{task} --resume {out}{again}", flush=True)
   status = common.exit_status(summary)
   if status:
     sys.exit(status)

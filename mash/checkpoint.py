@@ -69,12 +69,23 @@ def _from_flat(flat: dict[str, Any], template: Any, fields: Sequence[str] | None
   for path, leaf in paths:
     key = jax.tree_util.keystr(path)
     if _is_empty(leaf) or not wanted(key):
-      leaves.append(jnp.zeros(leaf.shape, leaf.dtype))
+      leaves.append(_zeros(leaf))
     elif key not in flat:
       raise KeyError(f'the checkpoint has no {key}')
     else:
       leaves.append(flat[key])
   return jax.tree.unflatten(treedef, leaves)
+
+
+def _zeros(leaf: Any) -> jax.Array:
+  """Zeros shaped like a template leaf, laid out as its sharding says when it has one (a global
+  template of a multi-device run: every process makes the same array, and the next jitted call sees
+  the layout it was compiled for)."""
+  sharding = getattr(leaf, 'sharding', None)
+  if isinstance(sharding, jax.sharding.Sharding):
+    host = np.zeros(leaf.shape, leaf.dtype)
+    return jax.make_array_from_callback(leaf.shape, sharding, lambda index: host[index])
+  return jnp.zeros(leaf.shape, leaf.dtype)
 
 
 def make_manager(directory: str | os.PathLike, max_to_keep: int | None = 5) -> ocp.CheckpointManager:
@@ -116,10 +127,19 @@ def restore(manager: ocp.CheckpointManager, step: int, template_state: Any,
   With ``fields`` (e.g. ``('params', 'normalizer')``: all a policy needs) only those top-level
   fields are read and the rest of the returned state is zeros, so a checkpoint stays usable for
   evaluation and export after the env state's layout changed.
+
+  A template with shardings (:func:`mash.distributed.global_state_shapes`) restores global arrays,
+  each process reading its own shards (collective: every process calls this); a template without
+  them restores onto this process's first device, whatever devices the checkpoint was saved from.
   """
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct,
                           jax.tree.map(_key_to_data_shape, template_state))
-  target = ocp.args.StandardRestore(_to_flat(abstract) if fields is None else None)
+  # A leaf without a sharding in the template is read with the sharding it was saved with; when
+  # that names devices this process does not have (a checkpoint of a multi-device or multi-process
+  # run read by one process: evaluation, export), it lands on the first local device instead.
+  target = ocp.args.StandardRestore(_to_flat(abstract) if fields is None else None,
+                                    fallback_sharding=jax.sharding.SingleDeviceSharding(
+                                        jax.local_devices()[0]))
   restored = manager.restore(step, args=ocp.args.Composite(state=target,
                                                            config=ocp.args.JsonRestore()))
   state = jax.tree.map(_match_commitment, _from_flat(restored['state'], abstract, fields),

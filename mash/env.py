@@ -174,7 +174,9 @@ class MashEnv(brax_base.Env):
     self.spec = spec
     self.n_substeps = int(round(config.ctrl_dt / config.physics.sim_dt))
     self.mj_model = robots.build_model(spec, config.physics)
-    self.mjx_model = mjx.put_model(self.mj_model, impl="jax")
+    # This process's first device: MJX's default, jax.devices()[0], belongs to process 0 in a
+    # multi-process run, and other processes cannot use arrays placed there.
+    self.mjx_model = mjx.put_model(self.mj_model, impl="jax", device=jax.local_devices()[0])
     m = self.mj_model
 
     # Joint-indexed tables, all in spec.joints order ([J]).
@@ -350,7 +352,7 @@ class MashEnv(brax_base.Env):
   def reset(self, rng: jax.Array) -> State:
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
     dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints)
-    data = mjx.make_data(self.mjx_model, impl="jax")
+    data = mjx.make_data(self.mjx_model, impl="jax", device=jax.local_devices()[0])
     data = data.replace(qpos=self._home_qpos)
     command = self._sample_command(k_cmd)
     a0 = jnp.zeros((self.action_size,))

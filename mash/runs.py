@@ -9,6 +9,14 @@ signal aborts at once; Orbax's atomic step directories still leave the last comp
 loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
 checkpoint step that does not restore is skipped with a warning (:func:`mash.checkpoint.restore_latest`);
 on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted.
+
+Several devices (``jax.device_count() > 1``: one process with several GPUs, or several processes
+joined by :func:`mash.distributed.initialize`) train one seed with its env batch split over a mesh of
+all of them (:mod:`mash.distributed`); ``num_envs`` must divide by the device count. Every process
+runs the same loop; only process 0 writes run files and draws the progress bar, while checkpoint
+saves and restores are collective (every process takes part). ``--seeds N > 1`` keeps the seed-vmapped
+single-device trainer: in one process it trains on the first device (with a warning), across
+processes it is refused. ``docs/multi_device.md`` has the commands.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ import jax
 import numpy as np
 
 from mash import checkpoint
+from mash import distributed
 from mash import experiment
 from mash import train as train_lib
 
@@ -72,14 +81,34 @@ def build_trainer(cfg: experiment.ExperimentConfig):
   return trainer
 
 
+def build_distributed_trainer(cfg: experiment.ExperimentConfig,
+                              mesh: jax.sharding.Mesh | None = None
+                              ) -> distributed.DistributedTrainer:
+  """The one-seed trainer of a config with its env batch split over ``mesh`` (default: every
+  device of every process, :func:`mash.distributed.global_mesh`)."""
+  mesh = distributed.global_mesh() if mesh is None else mesh
+  return distributed.make_distributed_trainer(cfg.train, experiment.make_env(cfg), mesh)
+
+
+def _is_mesh(trainer) -> bool:
+  return isinstance(trainer, distributed.DistributedTrainer)
+
+
 def init_state(trainer, cfg: experiment.ExperimentConfig):
+  if _is_mesh(trainer):
+    return trainer.init(jax.random.PRNGKey(cfg.train.seed))
   if cfg.seeds > 1:
     return trainer.init(train_lib.seed_keys(cfg.train.seed, cfg.seeds))
   return trainer.init(jax.random.PRNGKey(cfg.train.seed))
 
 
 def state_shapes(trainer, cfg: experiment.ExperimentConfig):
-  """Shapes and dtypes of the train state, without running ``init`` (restore template)."""
+  """Shapes and dtypes of the train state, without running ``init`` (restore template); for a
+  :class:`mash.distributed.DistributedTrainer` also the global shardings, so that every process
+  reads only its own shards."""
+  if _is_mesh(trainer):
+    return distributed.global_state_shapes(trainer.trainer, trainer.mesh,
+                                           jax.random.PRNGKey(cfg.train.seed))
   if cfg.seeds > 1:
     return jax.eval_shape(trainer.init, train_lib.seed_keys(cfg.train.seed, cfg.seeds))
   return jax.eval_shape(trainer.init, jax.random.PRNGKey(cfg.train.seed))
@@ -135,25 +164,30 @@ def seed_slice(tree: Any, seed: int, seeds: int) -> Any:
 
 
 @contextlib.contextmanager
-def _stop_on_signals() -> Iterator[dict[str, bool]]:
+def _stop_on_signals(verbose: bool = True) -> Iterator[dict[str, Any]]:
   """Turns SIGINT/SIGTERM into a flag the loop checks between jitted calls (``flag['signal']``
-  names the first signal)."""
-  flag: dict[str, Any] = {"stop": False, "signal": None}
+  names the first signal, ``flag['signum']`` is its number, 0 before one)."""
+  flag: dict[str, Any] = {"stop": False, "signal": None, "signum": 0}
 
   def handler(signum, frame):
     if flag["stop"]:  # a second signal: stop now
       raise KeyboardInterrupt
     flag["stop"] = True
     flag["signal"] = signal.Signals(signum).name
-    print(f"\nsignal {flag['signal']}: finishing the current call and saving a "
-          "checkpoint (send again to abort)", flush=True)
+    flag["signum"] = int(signum)
+    if verbose:
+      print(f"\nsignal {flag['signal']}: finishing the current call and saving a "
+            "checkpoint (send again to abort)", flush=True)
 
   old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
   try:
     yield flag
   finally:
     for s, h in old.items():
-      signal.signal(s, h)
+      # None: a handler installed outside Python (jax.distributed's preemption notifier catches
+      # SIGTERM), which Python cannot reinstate; ours stays, harmless once the loop is over.
+      if h is not None:
+        signal.signal(s, h)
 
 
 def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_iteration: int,
@@ -244,18 +278,79 @@ def _set_aside(out: Path, steps: tuple[int, ...]) -> None:
           file=sys.stderr, flush=True)
 
 
+def _sync(name: str) -> None:
+  """A barrier across processes (nothing in a one-process run)."""
+  if jax.process_count() > 1:
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices(name)
+
+
+def _gather_ints(value: int) -> np.ndarray:
+  """``value`` from every process, in process order (a collective; ``[value]`` in one process)."""
+  if jax.process_count() == 1:
+    return np.array([value])
+  from jax.experimental import multihost_utils
+  return np.asarray(multihost_utils.process_allgather(np.int32(value))).reshape(-1)
+
+
+def _agree(error: Exception | None, out: Path) -> None:
+  """Raises ``error``; across processes, every process raises when any process has an error (so
+  none is left waiting in a collective for one that gave up)."""
+  if jax.process_count() > 1:
+    failed = _gather_ints(error is not None)
+    if error is None and failed.any():
+      error = RunError(f"process {int(np.argmax(failed))} refused the run in '{out}' (its error "
+                       "line says why)")
+  if error is not None:
+    raise error
+
+
+def _plan_devices(cfg: experiment.ExperimentConfig, trainer: Any) -> tuple[bool, int]:
+  """Whether to train on the global mesh, and over how many devices; ConfigError when the config
+  cannot train on the devices there are."""
+  processes = jax.process_count()
+  if trainer is not None:
+    mesh = _is_mesh(trainer)
+    if mesh and cfg.seeds > 1:
+      raise experiment.ConfigError(f"--seeds {cfg.seeds}: the distributed trainer trains one seed")
+  else:
+    mesh = jax.device_count() > 1 and cfg.seeds == 1
+    if jax.device_count() > 1 and cfg.seeds > 1 and processes > 1:
+      raise experiment.ConfigError(
+          f"--seeds {cfg.seeds} cannot train across {processes} processes (several seeds train "
+          "in one process, on one device); use --seeds 1 (one run per seed) or one process")
+  if processes > 1 and not mesh:
+    raise experiment.ConfigError(f"a run over {processes} processes needs the distributed "
+                                 "trainer (mash.distributed.DistributedTrainer)")
+  devices = (trainer.mesh.size if trainer is not None else jax.device_count()) if mesh else 1
+  if mesh:
+    try:
+      train_lib.derived(cfg.train, devices)
+    except ValueError as e:
+      raise experiment.ConfigError(f"{str(e).rstrip('.')}: the env batch is split over all "
+                                   f"{devices} devices") from None
+  return mesh, devices
+
+
 def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
           show_progress: bool = True, max_calls: int | None = None,
           trainer: Any = None) -> dict[str, Any]:
   """Trains ``cfg`` into ``out_dir`` (or continues the run there when ``resume``).
 
+  With several devices (``jax.device_count() > 1``) and ``cfg.seeds == 1`` the env batch is split
+  over all of them (:func:`build_distributed_trainer`); every process of a multi-process run calls
+  this with the same arguments, and only process 0 writes run files. With several seeds it trains
+  on one device, with a warning (refused across processes).
+
   Args:
     cfg: the resolved experiment config (on resume, the run's own config).
     out_dir: the run directory; refused when it already holds a run and ``resume`` is false.
     resume: continue from the latest checkpoint in ``out_dir`` that restores.
-    show_progress: draw a progress bar.
+    show_progress: draw a progress bar (on process 0).
     max_calls: stop after this many jitted calls (tests, interrupted-run demos).
-    trainer: ``build_trainer(cfg)`` made beforehand, to reuse its compiled programs (tests).
+    trainer: ``build_trainer(cfg)`` or ``build_distributed_trainer(cfg)`` (or a
+      :class:`mash.distributed.DistributedTrainer` of another env) made beforehand, to reuse its
+      compiled programs (tests); it decides between one device and the mesh.
 
   Returns:
     The summary written to ``summary.json``; ``interrupted`` is true (and ``signal`` names the
@@ -263,53 +358,73 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
 
   Raises:
     RunError: ``out_dir`` cannot be used as asked (one line).
+    mash.experiment.ConfigError: the config does not fit the devices (one line).
   """
   from tqdm import tqdm
   from tensorboardX import SummaryWriter
 
   out = Path(out_dir)
-  if out.exists() and not out.is_dir():
-    raise RunError(f"'{out}' is a file, not a run directory")
-  if resume:
-    cfg = load_config(out)
-  elif out.exists() and is_run(out):
-    raise RunError(f"'{out}' already holds a run; pass --resume {out} to continue it, or choose "
-                   "another --out")
-  derived = train_lib.derived(cfg.train)
+  primary = distributed.is_primary()
+  multi = jax.process_count() > 1
+  error = None
+  try:
+    if out.exists() and not out.is_dir():
+      raise RunError(f"'{out}' is a file, not a run directory")
+    if resume:
+      cfg = load_config(out)
+    elif out.exists() and is_run(out):
+      raise RunError(f"'{out}' already holds a run; pass --resume {out} to continue it, or choose "
+                     "another --out")
+    on_mesh, devices = _plan_devices(cfg, trainer)
+  except (RunError, experiment.ConfigError) as e:
+    error = e
+  _agree(error, out)  # also the barrier before anything is written
+  derived = train_lib.derived(cfg.train, devices)
+  if trainer is None and not on_mesh and jax.device_count() > 1 and primary:
+    print(f"warning: --seeds {cfg.seeds} trains on one of the {jax.device_count()} devices (only "
+          "a one-seed run splits its env batch over devices)", file=sys.stderr, flush=True)
 
-  trainer = build_trainer(cfg) if trainer is None else trainer
+  if trainer is None:
+    trainer = build_distributed_trainer(cfg) if on_mesh else build_trainer(cfg)
+  to_host = distributed.gather_to_host if on_mesh else jax.device_get
   start_iteration = 0
   if resume:
     restored = restore_run(out, trainer, cfg)
-    _set_aside(out, restored.skipped)
+    if primary:
+      _set_aside(out, restored.skipped)
+    _sync("mash.runs.set_aside")
     state = restored.state
-    start_iteration = int(np.asarray(jax.device_get(state.iteration)).reshape(-1)[0])
+    start_iteration = int(np.asarray(to_host(state.iteration)).reshape(-1)[0])
   else:
     state = init_state(trainer, cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_atomic(out / "config.json", experiment.to_json(cfg))
+    if primary:
+      out.mkdir(parents=True, exist_ok=True)
+      _write_atomic(out / "config.json", experiment.to_json(cfg))
+    _sync("mash.runs.config_written")
   manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
 
-  progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
-  seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
-  writer = SummaryWriter(str(out / "tensorboard"))
+  progress = seed_log = writer = None
+  if primary:
+    progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
+    seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
+    writer = SummaryWriter(str(out / "tensorboard"))
   total_calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
   if max_calls is not None:
     total_calls = min(total_calls, max_calls)
-  bar = tqdm(total=cfg.train.num_iterations, initial=start_iteration, disable=not show_progress,
-             unit="it", dynamic_ncols=True)
+  bar = tqdm(total=cfg.train.num_iterations, initial=start_iteration,
+             disable=not (show_progress and primary), unit="it", dynamic_ncols=True)
   previous = {}
   if (out / "summary.json").exists() and resume:
     previous = json.loads((out / "summary.json").read_text())
   wall0 = time.perf_counter() - float(previous.get("wall_s", 0.0))
   compile_s, call_s, iteration = None, [], start_iteration
-  stopped = False
+  stopped, stop_signal, last_reward = False, None, None
   try:
-    with _stop_on_signals() as flag:
+    with _stop_on_signals(verbose=primary) as flag:
       for call in range(total_calls):
         t0 = time.perf_counter()
         state, metrics = trainer.train_epoch(state)
-        metrics = jax.device_get(metrics)
+        metrics = to_host(metrics)
         dt = time.perf_counter() - t0
         if compile_s is None:
           compile_s = dt
@@ -318,29 +433,44 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
         rows, seed_rows = _rows(metrics, iteration, derived.env_steps_per_iteration,
                                 time.perf_counter() - wall0, cfg.seeds)
         iteration = rows[-1]["iteration"]
-        progress.write(rows)
-        seed_log.write(seed_rows)
-        for r in rows:
-          for k, v in r.items():
-            if k not in ("iteration", "env_steps", "wall_s"):
-              writer.add_scalar(k, v, r["iteration"])
-        last = call == total_calls - 1 or flag["stop"]
-        if (call + 1) % cfg.checkpoint_every == 0 or last:
-          if not checkpoint.save(manager, iteration, state, cfg.train):
+        last_reward = rows[-1]["episode_reward"]
+        if primary:
+          progress.write(rows)
+          seed_log.write(seed_rows)
+          for r in rows:
+            for k, v in r.items():
+              if k not in ("iteration", "env_steps", "wall_s"):
+                writer.add_scalar(k, v, r["iteration"])
+        stop, stop_signal = flag["stop"], flag["signal"]
+        if multi:  # every process stops after the same call (a signal may reach only some)
+          signums = _gather_ints(flag["signum"])
+          stop = bool(signums.any())
+          stop_signal = signal.Signals(int(signums[np.flatnonzero(signums)[0]])).name if stop \
+              else None
+        last = call == total_calls - 1 or stop
+        if (call + 1) % cfg.checkpoint_every == 0 or last:  # collective: every process saves
+          if not checkpoint.save(manager, iteration, state, cfg.train) and primary:
             print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
                   f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
         sps = derived.env_steps_per_call / dt
         bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
         bar.update(len(rows))
-        if flag["stop"]:
+        if stop:
           stopped = True
           break
   finally:  # also on an abort (a second signal): Orbax saves are atomic anyway
     bar.close()
     manager.close()
-    writer.close()
-  plot_reward_curve(out)
+    if writer is not None:
+      writer.close()
+  if primary:
+    plot_reward_curve(out)
   steady = float(np.median(call_s)) if call_s else None
+  if primary:
+    final_reward = read_progress(out)["episode_reward"][-1].item() if iteration else None
+  else:
+    final_reward = last_reward if iteration > start_iteration else previous.get(
+        "final_episode_reward")
   summary = {
       "task": cfg.task, "algo": cfg.algo, "preset": cfg.preset, "ablation": cfg.ablation,
       "seeds": cfg.seeds, "iterations": iteration,
@@ -348,10 +478,12 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
       "wall_s": time.perf_counter() - wall0,
       "first_call_s": compile_s,
       "train_env_steps_per_s": (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
-      "final_episode_reward": read_progress(out)["episode_reward"][-1].item() if iteration else None,
+      "final_episode_reward": final_reward,
       "interrupted": stopped,
-      "signal": flag["signal"] if stopped else None,
-      "backend": jax.default_backend(), "devices": jax.device_count(),
+      "signal": stop_signal if stopped else None,
+      "backend": jax.default_backend(), "devices": devices, "processes": jax.process_count(),
   }
-  _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
+  if primary:
+    _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
+  _sync("mash.runs.done")
   return summary

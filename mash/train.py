@@ -499,7 +499,13 @@ def make_sharded_train_epoch(trainer: Trainer, mesh: jax.sharding.Mesh,
   specs = state_partition_specs(axis_name)
   fn = jax.shard_map(inner.train_epoch_fn, mesh=mesh, in_specs=(specs,), out_specs=(specs, P()),
                      check_vma=check_vma)
-  return jax.jit(fn, donate_argnums=0, compiler_options=trainer.compiler_options)
+  # Explicit output shardings: left to itself, jit returns zero-size leaves (MJX keeps some, e.g.
+  # ``act`` [B, 0]) replicated rather than split, the next call sees a different input sharding and
+  # compiles the whole epoch a second time.
+  shardings = jax.tree.map(lambda spec: jax.sharding.NamedSharding(mesh, spec), specs,
+                           is_leaf=lambda x: isinstance(x, P))
+  return jax.jit(fn, donate_argnums=0, compiler_options=trainer.compiler_options,
+                 out_shardings=(shardings, jax.sharding.NamedSharding(mesh, P())))
 
 
 def run(trainer: Trainer, state: TrainState, num_calls: int,

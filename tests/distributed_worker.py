@@ -8,7 +8,11 @@ Either way the same sharded program trains the same config from the same key for
 jitted calls, and each process writes ``DIR/result_p{I}.npz``: parameters, normalizer statistics,
 the metrics of every call and the global env batch's last rewards, keyed by pytree path.
 With ``--checkpoint`` it also saves the final global state with Orbax (every process) and restores it
-into a globally sharded template, checking the round trip.
+into a globally sharded template, checking the round trip. With ``--run DIR`` it then trains the
+same config from the same key through :func:`mash.runs.train` (the CLI's loop) into ``DIR``: one
+call, stopped by ``max_calls``, then ``resume=True`` to the end (``num_iterations = 2 * calls``
+iterations in all), and checks that a second non-resume ``train`` into ``DIR`` is refused by
+every process.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ def main() -> None:
   parser.add_argument('--coordinator', default='127.0.0.1:12355')
   parser.add_argument('--calls', type=int, default=2)
   parser.add_argument('--checkpoint', default=None)
+  parser.add_argument('--run', default=None)
   args = parser.parse_args()
   t_start = time.perf_counter()
 
@@ -93,6 +98,28 @@ def main() -> None:
     state, _ = dt.train_epoch(restored.state)  # the restored state trains (same program)
     results['checkpoint_ok'] = np.array(True)
     _log(args, t_start, 'checkpoint round trip')
+
+  if args.run:
+    import dataclasses
+    from mash import experiment, runs
+    cfg = experiment.ExperimentConfig(
+        preset='smoke', checkpoint_every=1,
+        train=dataclasses.replace(config, num_iterations=config.iterations_per_call * args.calls))
+    first = runs.train(cfg, args.run, show_progress=False, max_calls=1, trainer=dt)
+    _log(args, t_start, f'runs.train: {first["iterations"]} iterations')
+    resumed = runs.train(cfg, args.run, resume=True, show_progress=False, trainer=dt)
+    _log(args, t_start, f'runs.train resumed: {resumed["iterations"]} iterations')
+    try:
+      runs.train(cfg, args.run, show_progress=False, trainer=dt)
+      refused = ''
+    except runs.RunError as e:
+      refused = str(e)
+    results.update(run_first_iterations=np.array(first['iterations']),
+                   run_iterations=np.array(resumed['iterations']),
+                   run_devices=np.array(resumed['devices']),
+                   run_processes=np.array(resumed['processes']),
+                   run_final_reward=np.array(resumed['final_episode_reward']),
+                   run_refused=np.array(refused))
 
   results['process_count'] = np.array(jax.process_count())
   results['wall_s'] = np.array(time.perf_counter() - t_start)
