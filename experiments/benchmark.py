@@ -52,6 +52,7 @@ def brax_ppo_throughput(env_cfg, train_cfg, calls: int) -> tuple[float, float]:
   from brax.training.agents.ppo import networks as ppo_networks
   from brax.training.agents.ppo import train as ppo_train
   from mash import brax_compat
+  brax_compat.patch_jax_for_brax()
   env = brax_compat.BraxView(env_cfg)
   per_epoch = train_cfg.num_envs * train_cfg.unroll_length * train_cfg.iterations_per_call
   stamps = []
@@ -59,12 +60,17 @@ def brax_ppo_throughput(env_cfg, train_cfg, calls: int) -> tuple[float, float]:
       ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=train_cfg.actor_hidden,
       value_hidden_layer_sizes=train_cfg.critic_hidden, policy_obs_key="state",
       value_obs_key="privileged_state")
-  # Brax runs num_evals - 1 training epochs of num_timesteps / (num_evals - 1) steps each.
-  num_evals = calls + 2
+  # Brax runs num_evals - 1 training epochs of num_timesteps / (num_evals - 1) steps each and, with
+  # run_evals off, calls progress_fn after each. The first epoch carries the compile; under JAX 0.10
+  # Brax's pmapped epoch compiles once more on its second call (measured: the same program, 24 s at
+  # a tiny batch), and from the third on it runs compiled. So time at least three epochs.
+  num_evals = calls + 3
+  t_start = time.perf_counter()
   ppo_train.train(
       environment=env, num_timesteps=per_epoch * (num_evals - 1), num_envs=train_cfg.num_envs,
       episode_length=1000, unroll_length=train_cfg.unroll_length,
-      batch_size=train_cfg.num_envs * train_cfg.unroll_length // train_cfg.num_minibatches,
+      # Brax's batch_size counts trajectories of unroll_length per minibatch, not transitions.
+      batch_size=train_cfg.num_envs // train_cfg.num_minibatches,
       num_minibatches=train_cfg.num_minibatches, num_updates_per_batch=train_cfg.num_epochs,
       learning_rate=train_cfg.learning_rate, entropy_cost=train_cfg.entropy_coef,
       discounting=train_cfg.gamma, gae_lambda=train_cfg.gae_lambda,
@@ -72,11 +78,35 @@ def brax_ppo_throughput(env_cfg, train_cfg, calls: int) -> tuple[float, float]:
       run_evals=False, progress_fn=lambda step, metrics: stamps.append(time.perf_counter()),
       seed=0)
   epochs = [b - a for a, b in zip(stamps[:-1], stamps[1:])]
-  steady = min(epochs[1:]) if len(epochs) > 1 else epochs[0]
-  return per_epoch / steady, epochs[0] - steady
+  print(f"brax ppo: first epoch {stamps[0] - t_start:.1f} s, then {[round(e, 2) for e in epochs]}",
+        file=sys.stderr, flush=True)
+  steady = min(epochs[1:])
+  return per_epoch / steady, (stamps[0] - t_start) - steady
 
 
-def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
+def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
+  """Where a training iteration's time goes, from whole jitted calls only: the env rollout alone
+  (random actions), and the training call with 1 and with ``num_epochs`` epochs of updates; the
+  difference gives the cost of one epoch of minibatch updates, the rest is the rollout with the
+  networks, GAE and bookkeeping. Seconds per iteration."""
+  from mash import throughput
+  one = dataclasses.replace(train_cfg, num_epochs=1)
+  sps_env, _ = throughput.env_steps(env, train_cfg.num_envs, train_cfg.unroll_length,
+                                    repeats=calls)
+  steps = train_cfg.num_envs * train_cfg.unroll_length
+  t_env = steps / sps_env
+  t_one = steps / train_throughput(env, one, calls)[0]
+  t_all = steps / train_throughput(env, train_cfg, calls)[0]
+  per_epoch = (t_all - t_one) / max(train_cfg.num_epochs - 1, 1)
+  return {"env_rollout_s": t_env, "iteration_s": t_all, "update_epoch_s": per_epoch,
+          "updates_s": per_epoch * train_cfg.num_epochs,
+          "rollout_networks_gae_s": t_one - per_epoch - t_env,
+          "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
+
+
+def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None) -> dict:
+  """All figures at one batch. With ``out``, the JSON is rewritten after every stage (``complete``
+  false until the last), so a run stopped early keeps what it measured."""
   import jax
   from mash import config as train_config
   from mash import env as env_lib
@@ -88,7 +118,14 @@ def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
   env = env_lib.MashEnv(env_cfg)
   result = {"device": jax.devices()[0].device_kind, "backend": jax.default_backend(),
             "n_devices": jax.device_count(), "batch": batch, "substeps": env.n_substeps,
-            "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "complete": False}
+
+  def save():
+    if out is not None:
+      result["peak_rss_mb"] = _peak_rss_mb()
+      out.write_text(json.dumps(result, indent=2))
+
   steps = 20 if quick else 50
   print(f"[1/5] bare mjx.step, batch {batch}", file=sys.stderr, flush=True)
   result["physics_steps_per_s"], t = throughput.bare_physics(env, batch, steps)
@@ -96,6 +133,7 @@ def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
   env_sps, t_env = throughput.env_steps(env, batch, steps)
   result["env_steps_per_s"] = env_sps
   result["env_physics_equivalent_per_s"] = env_sps * env.n_substeps
+  save()
   train_cfg = dataclasses.replace(
       train_config.TrainConfig(), num_envs=batch, unroll_length=unroll, iterations_per_call=iters,
       actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64))
@@ -105,11 +143,12 @@ def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
   for i, (name, partition) in enumerate((("mash", "mash"), ("ppo", "ppo"))):
     print(f"[{3 + i}/5] training: {name}", file=sys.stderr, flush=True)
     e = env_lib.MashEnv(dataclasses.replace(env_cfg, partition=partition))
-    sps, comp = train_throughput(e, train_cfg, calls=1 if quick else 2)
+    sps, comp = train_throughput(e, train_cfg, calls=2)
     result["train_env_steps_per_s"][name] = sps
     result["compile_s"][name] = comp
+    save()
   print("[5/5] training: brax_ppo", file=sys.stderr, flush=True)
-  sps, comp = brax_ppo_throughput(env_cfg, train_cfg, calls=1 if quick else 2)
+  sps, comp = brax_ppo_throughput(env_cfg, train_cfg, calls=2)
   result["train_env_steps_per_s"]["brax_ppo"] = sps
   result["compile_s"]["brax_ppo"] = comp
   tr = result["train_env_steps_per_s"]
@@ -119,12 +158,16 @@ def run_benchmark(quick: bool, batch: int | None, task: str) -> dict:
       "mash_vs_ppo": tr["mash"] / tr["ppo"],
       "mash_vs_brax_ppo": tr["mash"] / tr["brax_ppo"],
   }
+  result["complete"] = True
   result["peak_rss_mb"] = _peak_rss_mb()
+  save()
   return result
 
 
-def sweep_batch(batches: list[int], task: str) -> list[dict]:
-  """Physics, env and MASH training throughput per batch size (one process)."""
+def sweep_batch(batches: list[int], task: str, stem: Path | None = None) -> list[dict]:
+  """Physics, env and MASH training throughput per batch size (one process).
+
+  With ``stem``, the table is rewritten after every batch (a run stopped early keeps its rows)."""
   import jax
   from mash import config as train_config
   from mash import env as env_lib
@@ -141,6 +184,8 @@ def sweep_batch(batches: list[int], task: str) -> list[dict]:
     train_sps, _ = train_throughput(env, cfg, calls=1)
     rows.append({"batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
                  "train_env_steps_per_s": train_sps, "device": jax.devices()[0].device_kind})
+    if stem is not None:
+      _write_table(rows, stem, "batch")
   return rows
 
 
@@ -211,25 +256,41 @@ def main(argv=None) -> None:
   p.add_argument("--task", default="bipedal")
   p.add_argument("--out", default="benchmark.json")
   p.add_argument("--sweep", default=None, help="batch | physics")
+  p.add_argument("--breakdown", action="store_true",
+                 help="time the env rollout, the updates and the rest of a MASH iteration")
   p.add_argument("--batches", default="64,256,1024,4096")
+  p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
   args = p.parse_args(argv)
   with common.user_errors():
     if args.task not in ("bipedal", "armswing"):
       raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
     if args.sweep == "batch":
-      rows = sweep_batch([int(b) for b in args.batches.split(",")], args.task)
-      _write_table(rows, Path("benchmarks") / "scaling_batch", "batch")
+      try:
+        batches = [int(b) for b in args.batches.split(",")]
+      except ValueError:
+        raise common.UserError(f"--batches '{args.batches}': expected comma-separated integers, "
+                               "e.g. 64,256,1024") from None
+      rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch")
       print(json.dumps(rows, indent=2))
       return
     if args.sweep == "physics":
       rows = sweep_physics(args.task)
-      _write_table(rows, Path("benchmarks") / "physics_settings", "sim_dt")
+      _write_table(rows, Path(args.dir) / "physics_settings", "sim_dt")
       print(json.dumps(rows, indent=2))
+      return
+    if args.breakdown:
+      from mash import config as train_config
+      from mash import env as env_lib
+      batch = args.batch or 256
+      cfg = dataclasses.replace(train_config.TrainConfig(), num_envs=batch, unroll_length=24,
+                                iterations_per_call=2, actor_hidden=(256, 128, 64),
+                                critic_hidden=(256, 128, 64))
+      env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task))
+      print(json.dumps(dict(batch=batch, **train_breakdown(env, cfg)), indent=2))
       return
     if args.sweep is not None:
       raise common.UserError(f"--sweep '{args.sweep}' is unknown; expected batch or physics")
-    result = run_benchmark(args.quick, args.batch, args.task)
-    Path(args.out).write_text(json.dumps(result, indent=2))
+    result = run_benchmark(args.quick, args.batch, args.task, Path(args.out))
     print(json.dumps(result))
 
 

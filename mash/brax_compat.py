@@ -11,9 +11,33 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 from brax.envs import base as brax_base
 
 from mash import env as env_lib
+
+
+def _device_put_replicated(tree, devices):
+  """One copy of every leaf per device, stacked on a new leading axis, laid out as ``jax.pmap``
+  lays out its outputs, with strong dtypes (so Brax's pmapped training epoch compiles once): what
+  ``jax.device_put_replicated`` did before JAX 0.10 removed it."""
+  def stack(x):
+    x = jnp.asarray(x)
+    # A named dtype drops weak typing: the epoch returns strong types, and a weak leaf going in
+    # would make its second call compile again.
+    return jnp.stack([jnp.asarray(x, dtype=x.dtype)] * len(devices))
+
+  stacked = jax.tree.map(stack, tree)
+  return jax.pmap(lambda t: t, devices=devices)(stacked)
+
+
+def patch_jax_for_brax() -> None:
+  """Brax 0.14.2's trainers (the latest release) still call ``jax.device_put_replicated``, which
+  JAX 0.10 removed; puts back an equivalent when it is missing. Does nothing on older JAX."""
+  try:
+    jax.device_put_replicated  # noqa: B018 (raises AttributeError once removed)
+  except AttributeError:
+    jax.device_put_replicated = _device_put_replicated
 
 
 class BraxView(brax_base.Env):

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# What we measure on a lent GPU machine, in one bounded call:
+#   1. a bipedal MASH training run at PRESET, stopped by SIGTERM after TRAIN_S seconds (the run saves
+#      a checkpoint and exits 143; a shorter run than the preset is then a prefix of its curve);
+#   2. its evaluation (DR on, 0.4 m/s), the ONNX export and sim-to-sim in MuJoCo C;
+#   3. the benchmark (physics, env step, MASH / our PPO / Brax PPO training, compile) at BATCH;
+#   4. the batch sweep, with whatever time is left before DEADLINE_S.
+# Every stage has its own time limit and log; a failing stage does not stop the next. Results are
+# are written under WORK and packed into $OUT/gpu_results.tar.gz (everything but checkpoints) and
+# $OUT/checkpoint.tar.gz (the run's latest checkpoint).
+#
+#   OUT=/tmp/gpu BATCH=8192 TRAIN_S=270 bash benchmarks/gpu_session.sh
+set -u
+OUT=${OUT:?set OUT to an empty results directory}
+PY=${PY:-python3}
+PRESET=${PRESET:-gpu}
+BATCH=${BATCH:-8192}
+BATCHES=${BATCHES:-1024,4096,16384}
+BENCH_S=${BENCH_S:-130}
+TRAIN_S=${TRAIN_S:-260}
+EVAL_S=${EVAL_S:-60}
+EXPORT_S=${EXPORT_S:-45}
+DEADLINE_S=${DEADLINE_S:-545}
+EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
+EVAL_ARGS=${EVAL_ARGS:-}
+export PYTHONUNBUFFERED=1 TQDM_MININTERVAL=${TQDM_MININTERVAL:-15}
+SIM2SIM_ARGS=${SIM2SIM_ARGS:---episodes 4}
+WORK=${WORK:-$(mktemp -d)}
+mkdir -p "$OUT" "$WORK/logs"
+t0=$(date +%s)
+elapsed() { echo $(( $(date +%s) - t0 )); }
+
+# stage NAME LIMIT_S CMD...: runs CMD under a time limit (SIGTERM, then SIGKILL 20 s later).
+stage() {
+  local name=$1 limit=$2; shift 2
+  local left=$(( DEADLINE_S - $(elapsed) ))
+  (( limit > left )) && limit=$left
+  if (( limit < 20 )); then echo "== $name skipped: ${left}s left"; return; fi
+  echo "== $name (limit ${limit}s, at $(elapsed)s)"
+  timeout -s TERM -k 20 "$limit" "$@" > "$WORK/logs/$name.log" 2>&1
+  echo "== $name rc=$? at $(elapsed)s"
+  tail -n 4 "$WORK/logs/$name.log" | cut -c1-300
+}
+
+{
+  date -u +%Y-%m-%dT%H:%M:%SZ
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1
+  $PY -c "import sys, jax, mujoco; print(sys.version.split()[0], 'jax', jax.__version__, 'mujoco', mujoco.__version__, jax.devices())" 2>&1 | grep -v warp
+  nproc
+} | tee "$WORK/logs/machine.txt"
+
+cd "$(dirname "$0")/.."
+stage train "$TRAIN_S" $PY -m experiments.bipedal --preset "$PRESET" --out "$WORK/run" \
+  $EXTRA_TRAIN_ARGS
+grep -h "iteration" "$WORK/logs/train.log" | tail -n 2
+stage evaluate "$EVAL_S" $PY -m experiments.evaluate --run "$WORK/run" $EVAL_ARGS
+stage export "$EXPORT_S" $PY -m experiments.export --run "$WORK/run"
+stage sim2sim "$EXPORT_S" $PY -m experiments.sim2sim --run "$WORK/run" $SIM2SIM_ARGS
+stage benchmark "$BENCH_S" $PY -m experiments.benchmark --quick --batch "$BATCH" \
+  --out "$WORK/benchmark.json"
+stage sweep 600 $PY -m experiments.benchmark --sweep batch --batches "$BATCHES" --dir "$WORK"
+
+cp "$WORK/logs/machine.txt" "$WORK/run/" 2>/dev/null
+tar -czf "$OUT/gpu_results.tar.gz" -C "$WORK" --exclude=run/checkpoints logs \
+  $(cd "$WORK" && ls -d run benchmark.json scaling_batch.* 2>/dev/null)
+last=$(ls "$WORK/run/checkpoints" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -n 1)
+[ -n "$last" ] && tar -czf "$OUT/checkpoint.tar.gz" -C "$WORK" "run/checkpoints/$last"
+ls -la "$OUT"
+[ -f "$WORK/run/eval/metrics.json" ] && cat "$WORK/run/eval/metrics.json" | head -c 1500
+echo; [ -f "$WORK/benchmark.json" ] && cat "$WORK/benchmark.json" | head -c 2000
+echo "== done at $(elapsed)s"
