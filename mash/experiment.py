@@ -65,11 +65,9 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
                                actor_hidden=(64, 64), critic_hidden=(64, 64),
                                learning_rate=1e-3)
   if preset == "cpu":
-    # 600 iterations (3.7 M steps): 14 min on 2 idle cores, 25 min on shared ones, inside the 30 min
-    # a CPU user should wait.
-    # Measured: 1000 iterations took 47 min (2 contended cores) for a reward 15 % higher, and
-    # neither length learns to step (benchmarks/results/).
-    return dataclasses.replace(base, num_iterations=600, unroll_length=24, num_envs=256,
+    # 1000 iterations (6.1 M steps): about 23 min on 2 idle cores (4,400 env steps/s measured with
+    # this preset), inside the 30 min a CPU user should wait; 47 min was measured on shared cores.
+    return dataclasses.replace(base, num_iterations=1000, unroll_length=24, num_envs=256,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
                                actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64),
                                learning_rate=1e-3)
