@@ -72,27 +72,6 @@ def _timed(fn, args, repeats: int, sync) -> dict:
   return {'compile_s': compile_s, 'run_s': best, 'cpu_cores_used': cpu / best}
 
 
-def _mjx_on_local_device() -> None:
-  """Stop-gap for processes other than 0: ``mash.env`` calls ``mjx.put_model`` / ``mjx.make_data``
-  without a device, MJX then picks ``jax.devices()[0]``, which belongs to process 0, and every other
-  process fails ("Closing over jax.Array that spans non-addressable devices"). Until ``mash/env.py``
-  passes ``device=jax.local_devices()[0]``, rebind the ``mjx`` name of ``mash.env`` (in this worker
-  process only) to a namespace whose two constructors do."""
-  import functools
-  import types
-  import jax
-  from mujoco import mjx
-  from mash import env as env_lib
-  if jax.process_count() == 1 or getattr(env_lib.mjx, '_local_device_shim', False):
-    return
-  local = jax.local_devices()[0]
-  shim = types.SimpleNamespace(**{k: getattr(mjx, k) for k in dir(mjx) if not k.startswith('__')})
-  shim.put_model = functools.partial(mjx.put_model, device=local)
-  shim.make_data = functools.partial(mjx.make_data, device=local)
-  shim._local_device_shim = True
-  env_lib.mjx = shim
-
-
 def _env_step_worker(args) -> dict:
   """Times ``args.steps`` batched env steps of this process's envs (see the module docstring)."""
   import jax
@@ -102,7 +81,6 @@ def _env_step_worker(args) -> dict:
   from mash import distributed
   from mash import env as env_lib
 
-  _mjx_on_local_device()
   env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task))
   n, pid = args.num_processes, args.process_id
   local_batch = args.batch // n
@@ -148,7 +126,6 @@ def _train_worker(args) -> dict:
   from mash import env as env_lib
   from mash import train as train_lib
 
-  _mjx_on_local_device()
   env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task))
   cfg = dataclasses.replace(train_config.TrainConfig(), num_envs=args.train_batch, unroll_length=16,
                             iterations_per_call=1, num_epochs=2, num_minibatches=2,
