@@ -26,6 +26,15 @@ def _peak_rss_mb() -> float:
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _peak_device_mb() -> float | None:
+  """Peak accelerator memory in use by this process (MB), where the backend reports it (GPU, TPU;
+  not the CPU backend, whose arrays are in ``peak_rss_mb``)."""
+  import jax
+  stats = jax.devices()[0].memory_stats() or {}
+  peak = stats.get("peak_bytes_in_use")
+  return None if peak is None else peak / 2**20
+
+
 def train_throughput(env, train_cfg, calls: int) -> tuple[float, float]:
   """(env steps/s of our training loop, compile seconds of one training call)."""
   import jax
@@ -122,8 +131,9 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
             "complete": False}
 
   def save():
+    result["peak_rss_mb"] = _peak_rss_mb()
+    result["peak_device_mb"] = _peak_device_mb()
     if out is not None:
-      result["peak_rss_mb"] = _peak_rss_mb()
       out.write_text(json.dumps(result, indent=2))
 
   steps = 20 if quick else 50
@@ -159,7 +169,6 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
       "mash_vs_brax_ppo": tr["mash"] / tr["brax_ppo"],
   }
   result["complete"] = True
-  result["peak_rss_mb"] = _peak_rss_mb()
   save()
   return result
 
