@@ -67,6 +67,10 @@ class EnvConfig:
     action_clip: |action| bound before scaling.
     gait_cycle_s: period of the temporal director (1/k in the paper's eq.).
     swing_amplitude: leg reference amplitude (rad, times the robot's gait_reference multipliers).
+      The paper gives none; 0.25 makes the reference knee swing 0.5 rad, the range of the paper's
+      hardware knee plot (1.2 to 1.7 rad). On the T1 it lifts the swing sole 3.8 cm at its peak
+      (kinematics; humanoid-gym's 0.17 lifts it 2.2 cm and, played open loop, keeps the foot on
+      the ground 94 % of the time). ``RewardParams.feet_height_target`` matches it.
     arm_swing_amplitude: shoulder reference amplitude (rad), armswing only.
     agent_id: append the one-hot agent id to each agent's observation (ablation switch).
     critic: 'global' (the 106-dim privileged state, MASH) or 'local' (IPPO ablation: the critic
@@ -88,7 +92,7 @@ class EnvConfig:
   action_scale: float = 0.25
   action_clip: float = 10.0
   gait_cycle_s: float = 0.64
-  swing_amplitude: float = 0.17
+  swing_amplitude: float = 0.25
   arm_swing_amplitude: float = 0.3
   agent_id: bool = True
   critic: str = "global"

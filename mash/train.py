@@ -181,6 +181,9 @@ class Trainer(NamedTuple):
     init_fn: ``key -> TrainState`` (pure, unjitted: for nesting in other transformations).
     init: ``init_fn`` jitted.
     iteration: ``TrainState -> (TrainState, metrics)``: one training iteration (pure).
+    update: ``(OptimizerState, normalizer, flat LossBatch [T*B, ...], key) -> (OptimizerState,
+      metrics)``: the ``num_epochs x num_minibatches`` MAPPO steps of one iteration (pure; the
+      benchmark times it alone).
     train_epoch_fn: ``TrainState -> (TrainState, metrics [iterations_per_call])`` (pure, unjitted:
       for ``vmap`` / ``shard_map``).
     train_epoch: ``train_epoch_fn`` jitted with the state donated.
@@ -195,6 +198,7 @@ class Trainer(NamedTuple):
   init_fn: Callable[[jax.Array], TrainState]
   init: Callable[[jax.Array], TrainState]
   iteration: Callable[[TrainState], tuple[TrainState, Metrics]]
+  update: Callable[..., tuple[OptimizerState, Metrics]]
   train_epoch_fn: Callable[[TrainState], tuple[TrainState, Metrics]]
   train_epoch: Callable[[TrainState], tuple[TrainState, Metrics]]
 
@@ -415,7 +419,7 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
   return Trainer(config=config, env=env, networks=networks, optimizer=optimizer,
                  axis_name=axis_name, compiler_options=compiler_options,
                  init_fn=init, init=jax.jit(init, compiler_options=compiler_options),
-                 iteration=iteration,
+                 iteration=iteration, update=sgd,
                  train_epoch_fn=train_epoch_fn,
                  train_epoch=jax.jit(train_epoch_fn, donate_argnums=0,
                                      compiler_options=compiler_options))

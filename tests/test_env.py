@@ -288,10 +288,12 @@ def test_left_right_mirror_symmetry(armswing_env, standing):
 
 
 def test_gait_reference_and_stance(dr_env):
-  """Swing leg bends (hip -, knee +, ankle -) with amplitude 0.17 x multipliers; standing: none."""
+  """Swing leg bends (hip -, knee +, ankle -) with the swing amplitude x multipliers; standing:
+  none."""
   # Phase 0.25: left leg angle pi/2, sin = 1 (full swing); right leg sin(3pi/2) = -1 (stance).
   q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.25), jnp.asarray(0.0)))
-  np.testing.assert_allclose(q_ref[:6], 0.17 * np.array([-1, 0, 0, 2, -1, 0]), atol=1e-6)
+  amplitude = dr_env.config.swing_amplitude
+  np.testing.assert_allclose(q_ref[:6], amplitude * np.array([-1, 0, 0, 2, -1, 0]), atol=1e-6)
   np.testing.assert_allclose(q_ref[6:], 0.0, atol=1e-6)  # right leg; arms held in bipedal
   np.testing.assert_array_equal(stance, [0.0, 1.0])
   q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.25), jnp.asarray(1.0)))
@@ -304,6 +306,22 @@ RANGES = {  # DomainParams field -> DomainRandConfig field
     "friction": "friction", "mass_scale": "mass_scale", "com_offset": "com_offset",
     "gravity": "gravity", "joint_damping": "joint_damping", "joint_friction": "joint_friction",
     "armature": "armature", "kp_scale": "kp_scale", "kd_scale": "kd_scale"}
+
+
+def test_reference_swing_reaches_the_clearance_height(dr_env):
+  """At full swing the reference pose lifts the swing sole into the feet-clearance window, so
+  following the temporal director earns the clearance term (MuJoCo C kinematics, torso fixed)."""
+  import mujoco
+  m = dr_env.mj_model
+  data = mujoco.MjData(m)
+  data.qpos[:] = m.key("home").qpos
+  q_ref, _ = dr_env.gait(jnp.asarray(0.25), jnp.asarray(0.0))  # left leg at sin = 1
+  data.qpos[dr_env._qadr] += np.asarray(q_ref)
+  mujoco.mj_kinematics(m, data)
+  sole_z = data.geom_xpos[dr_env._soles][..., 2]  # [2 feet, n_sole]
+  lift = sole_z[0].min() - sole_z[1].min()
+  p = dr_env.config.reward_params
+  assert abs(lift - p.feet_height_target) < p.feet_height_tolerance, (lift, p.feet_height_target)
 
 
 def test_randomize_sample_in_ranges_and_varies():

@@ -30,7 +30,7 @@ def _inputs(**overrides) -> rewards.RewardInputs:
       base_lin_vel=f(0.3, 0.1, 0.05), base_ang_vel=f(0.1, 0.2, -0.3),
       euler=f(0.02, -0.03, 0.5), gravity_proj=f(0.03, -0.04, -np.sqrt(1 - 0.05**2)),
       base_height=jnp.float32(0.65), base_height_target=jnp.float32(0.66),
-      feet_height=f(0.07, 0.12), feet_vel=f(0.1, 0.2, 0.0, 0.3).reshape(2, 2),
+      feet_height=f(0.03, 0.12), feet_vel=f(0.1, 0.2, 0.0, 0.3).reshape(2, 2),
       contact=f(1.0, 1.0), stance=f(0.0, 1.0),
       first_contact=f(1.0, 0.0), air_time=f(0.3, 0.2), stride_error=f(0.1, 0.5),
       penalty_force=f(0.05, 2.0, 0.0, 0.2),
@@ -55,7 +55,7 @@ HAND = {
     "dof_acc": 3125.0,
     # Left foot lands after 0.3 s with stride error 0.1: 0.3 exp(-5 * 0.1); right not landing: 0.
     "feet_air_time": 0.3 * np.exp(-0.5),
-    # Left foot swings (stance 0) at |0.07 - 0.08| = 0.01 < 0.02: 1; right foot in stance: 0.
+    # Left foot swings (stance 0) at |0.03 - 0.04| = 0.01 < 0.02: 1; right foot in stance: 0.
     "feet_clearance": 1.0,
     # Left: contact 1 vs stance 0 -> -0.3; right: 1 vs 1 -> +1.
     "feet_contact_number": 0.7,
