@@ -22,6 +22,11 @@ from pathlib import Path
 from experiments import common
 
 
+def _device_kind() -> str:
+  import jax
+  return jax.devices()[0].device_kind
+
+
 def _peak_rss_mb() -> float:
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -93,23 +98,51 @@ def brax_ppo_throughput(env_cfg, train_cfg, calls: int) -> tuple[float, float]:
   return per_epoch / steady, (stamps[0] - t_start) - steady
 
 
-def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
-  """Where a training iteration's time goes, from whole jitted calls only: the env rollout alone
-  (random actions), and the training call with 1 and with ``num_epochs`` epochs of updates; the
-  difference gives the cost of one epoch of minibatch updates, the rest is the rollout with the
-  networks, GAE and bookkeeping. Seconds per iteration."""
+def update_seconds(env, train_cfg, calls: int = 3) -> float:
+  """Seconds of one iteration's updates (``num_epochs x num_minibatches`` MAPPO steps) run alone
+  on a synthetic batch of the iteration's shapes: the floor the updates put under an iteration,
+  whatever the loop around them does."""
+  import jax
+  import jax.numpy as jnp
+  from mash import losses
+  from mash import normalization
   from mash import throughput
-  one = dataclasses.replace(train_cfg, num_epochs=1)
+  from mash import train as train_lib
+  trainer = train_lib.make_train(train_cfg, env)
+  groups = trainer.networks.groups
+  n = train_cfg.num_envs * train_cfg.unroll_length
+  n_agents = sum(g.n_agents for g in groups)
+  keys = iter(jax.random.split(jax.random.PRNGKey(0), 2 * len(groups) + 3))
+  normal = lambda shape: jax.random.normal(next(keys), shape)
+  obs = {g.name: normal((n, g.n_agents, g.obs_dim)) for g in groups}
+  obs["critic"] = normal((n, env.critic_obs_size))
+  batch = losses.LossBatch(
+      obs=obs, actions={g.name: normal((n, g.n_agents, g.act_dim)) for g in groups},
+      log_probs=jnp.zeros((n, n_agents)), values=jnp.zeros((n, n_agents)),
+      advantages=normal((n, n_agents)), returns=jnp.zeros((n, n_agents)), weights=jnp.ones((n,)))
+  normalizer = normalization.init_normalizer(
+      {**{g.name: g.obs_dim for g in groups}, "critic": env.critic_obs_size})
+  params = trainer.networks.init(jax.random.PRNGKey(1))
+  opt = train_lib.OptimizerState(params, trainer.optimizer.init(params))
+  update = jax.jit(lambda o, b, k: trainer.update(o, normalizer, b, k)[0].params)
+  return throughput.time_call(update, opt, batch, jax.random.PRNGKey(2), repeats=calls).run_s
+
+
+def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
+  """Where a training iteration's time goes, in seconds per iteration: the env rollout alone (random
+  actions), the updates alone (:func:`update_seconds`), and the whole training call; the rest is
+  the networks in the rollout, GAE and bookkeeping. ``train_vs_env_ceiling`` is the train/env
+  ratio the updates allow even with no other cost."""
+  from mash import throughput
   sps_env, _ = throughput.env_steps(env, train_cfg.num_envs, train_cfg.unroll_length,
                                     repeats=calls)
   steps = train_cfg.num_envs * train_cfg.unroll_length
   t_env = steps / sps_env
-  t_one = steps / train_throughput(env, one, calls)[0]
   t_all = steps / train_throughput(env, train_cfg, calls)[0]
-  per_epoch = (t_all - t_one) / max(train_cfg.num_epochs - 1, 1)
-  return {"env_rollout_s": t_env, "iteration_s": t_all, "update_epoch_s": per_epoch,
-          "updates_s": per_epoch * train_cfg.num_epochs,
-          "rollout_networks_gae_s": t_one - per_epoch - t_env,
+  t_updates = update_seconds(env, train_cfg)
+  return {"env_rollout_s": t_env, "updates_alone_s": t_updates,
+          "rest_s": t_all - t_env - t_updates, "iteration_s": t_all,
+          "train_vs_env": t_env / t_all, "train_vs_env_ceiling": t_env / (t_env + t_updates),
           "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
 
 
@@ -125,7 +158,7 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
   iters = 2 if quick else 4
   env_cfg = env_lib.EnvConfig(task=task)
   env = env_lib.MashEnv(env_cfg)
-  result = {"device": jax.devices()[0].device_kind, "backend": jax.default_backend(),
+  result = {"device": _device_kind(), "backend": jax.default_backend(),
             "n_devices": jax.device_count(), "batch": batch, "substeps": env.n_substeps,
             "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
             "complete": False}
@@ -192,7 +225,7 @@ def sweep_batch(batches: list[int], task: str, stem: Path | None = None) -> list
                               critic_hidden=(256, 128, 64))
     train_sps, _ = train_throughput(env, cfg, calls=1)
     rows.append({"batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
-                 "train_env_steps_per_s": train_sps, "device": jax.devices()[0].device_kind})
+                 "train_env_steps_per_s": train_sps, "device": _device_kind()})
     if stem is not None:
       _write_table(rows, stem, "batch")
   return rows
@@ -263,10 +296,11 @@ def main(argv=None) -> None:
   p.add_argument("--quick", action="store_true", help="smaller batch and fewer repeats (< 15 min CPU)")
   p.add_argument("--batch", type=int, default=None)
   p.add_argument("--task", default="bipedal")
-  p.add_argument("--out", default="benchmark.json")
+  p.add_argument("--out", default=None,
+                 help="JSON file (default benchmark.json, or breakdown.json with --breakdown)")
   p.add_argument("--sweep", default=None, help="batch | physics")
   p.add_argument("--breakdown", action="store_true",
-                 help="time the env rollout, the updates and the rest of a MASH iteration")
+                 help="time the env rollout, the updates and the rest of a MASH and a PPO iteration")
   p.add_argument("--batches", default="64,256,1024,4096")
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
   args = p.parse_args(argv)
@@ -294,12 +328,20 @@ def main(argv=None) -> None:
       cfg = dataclasses.replace(train_config.TrainConfig(), num_envs=batch, unroll_length=24,
                                 iterations_per_call=2, actor_hidden=(256, 128, 64),
                                 critic_hidden=(256, 128, 64))
-      env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task))
-      print(json.dumps(dict(batch=batch, **train_breakdown(env, cfg)), indent=2))
+      result = {"batch": batch, "device": _device_kind(),
+                "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+      for partition in ("mash", "ppo"):
+        print(f"breakdown: {partition}", file=sys.stderr, flush=True)
+        env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task, partition=partition))
+        result[partition] = train_breakdown(env, cfg)
+      result["updates_alone_mash_vs_ppo"] = (result["mash"]["updates_alone_s"]
+                                             / result["ppo"]["updates_alone_s"])
+      Path(args.out or "breakdown.json").write_text(json.dumps(result, indent=2))
+      print(json.dumps(result, indent=2))
       return
     if args.sweep is not None:
       raise common.UserError(f"--sweep '{args.sweep}' is unknown; expected batch or physics")
-    result = run_benchmark(args.quick, args.batch, args.task, Path(args.out))
+    result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"))
     print(json.dumps(result))
 
 
