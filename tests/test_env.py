@@ -10,6 +10,7 @@ the same for the nominal robot (DR off) for the standing test.
 import chex
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -311,7 +312,6 @@ RANGES = {  # DomainParams field -> DomainRandConfig field
 def test_reference_swing_reaches_the_clearance_height(dr_env):
   """At full swing the reference pose lifts the swing sole into the feet-clearance window, so
   following the temporal director earns the clearance term (MuJoCo C kinematics, torso fixed)."""
-  import mujoco
   m = dr_env.mj_model
   data = mujoco.MjData(m)
   data.qpos[:] = m.key("home").qpos
