@@ -71,9 +71,10 @@ def main(task: str, argv: list[str] | None = None) -> None:
           f"{cfg.train.num_iterations} iterations -> {out}{common.devices_note()}", flush=True)
       summary = runs.train(cfg, out, show_progress=not args.no_progress)
     state = "interrupted at" if summary["interrupted"] else "finished"
+    reward = summary["final_episode_reward"]
+    reward = "n/a" if reward is None else f"{reward:.3f}"
     say(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
-        f"{summary['wall_s']:.0f} s, final episode reward {summary['final_episode_reward']}; "
-        f"run in {out}", flush=True)
+        f"{summary['wall_s']:.0f} s, final episode reward {reward}; run in {out}", flush=True)
     if summary["interrupted"]:
       again = " (on every process, with the same flags)" if summary.get("processes", 1) > 1 else ""
       say(f"continue with: python -m experiments.{task} --resume {out}{again}", flush=True)
