@@ -6,8 +6,10 @@ our single-agent PPO and Brax's own PPO trainer on the same env, batch, rollout 
 sizes, compile times, and peak memory. Because every figure comes from one process, their ratios
 hold on a noisy machine.
 
-``--sweep batch`` measures throughput against batch size and writes ``benchmarks/scaling_batch.*``;
-``--sweep physics`` measures each solver setting tried (physics steps/s, standing drift).
+``--breakdown`` splits an iteration's time into the env rollout, the updates alone and the rest, for
+MASH and PPO (``breakdown.json``). ``--sweep batch`` measures throughput against batch size and
+writes ``benchmarks/scaling_batch.*``; ``--sweep physics`` measures each solver setting tried
+(physics steps/s, standing drift).
 """
 
 from __future__ import annotations

@@ -435,7 +435,8 @@ def make_seed_trainer(trainer: Trainer) -> Trainer:
   """The same trainer over a leading seed axis.
 
   ``init(keys [S, 2])`` stacks ``S`` single-seed states; ``train_epoch`` trains the ``S``
-  independent runs in one jitted ``vmap`` call (metrics ``[S, iterations_per_call]``).
+  independent runs in one jitted ``vmap`` call (metrics ``[S, iterations_per_call]``);
+  ``iteration`` and ``update`` take and return arguments with a leading seed axis.
   """
   if trainer.axis_name is not None:
     raise ValueError('make_seed_trainer expects a trainer built without axis_name.')
@@ -450,7 +451,8 @@ def make_seed_trainer(trainer: Trainer) -> Trainer:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
 
   return trainer._replace(init=init,
-                          iteration=jax.vmap(trainer.iteration), train_epoch_fn=epoch_fn,
+                          iteration=jax.vmap(trainer.iteration), update=jax.vmap(trainer.update),
+                          train_epoch_fn=epoch_fn,
                           train_epoch=jax.jit(epoch_fn, donate_argnums=0,
                                               compiler_options=trainer.compiler_options))
 
