@@ -165,6 +165,14 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
                      f"{config.physics.sim_dt}")
   if config.episode_length < 1:
     raise ValueError(f"episode_length must be >= 1, got {config.episode_length}")
+  params = config.reward_params
+  unknown = [t for t in params.ramped_terms if t not in rewards.TERMS]
+  if unknown:
+    raise ValueError(f"reward_params.ramped_terms: '{unknown[0]}' is not a reward term; expected "
+                     f"names from {', '.join(rewards.TERMS)}")
+  if params.penalty_ramp_steps < 0:
+    raise ValueError("reward_params.penalty_ramp_steps must be >= 0 (0 = no curriculum), got "
+                     f"{params.penalty_ramp_steps}")
 
 
 class MashEnv(brax_base.Env):
@@ -363,6 +371,7 @@ class MashEnv(brax_base.Env):
     info: dict[str, Any] = {
         "rng": rng,
         "step": jnp.zeros((), jnp.int32),
+        "env_steps": jnp.zeros((), jnp.int32),
         "command": command,
         "phase": jax.random.uniform(k_phase) * (1.0 - command[0]),
         "last_action": a0, "last_last_action": a0,
@@ -506,7 +515,7 @@ class MashEnv(brax_base.Env):
         first_contact=first_contact, air_time=jnp.minimum(air_time, cfg.gait_cycle_s / 2),
         stride_error=stride_error, penalty_force=penalty_force, action=action,
         last_action=info["last_action"], last_last_action=info["last_last_action"],
-        dt=cfg.ctrl_dt)
+        dt=cfg.ctrl_dt, env_steps=info["env_steps"])
     terms = rewards.reward_terms(x, cfg.reward_scales, cfg.reward_params)
     reward = rewards.total_reward(terms, cfg.reward_params)
 
@@ -517,8 +526,9 @@ class MashEnv(brax_base.Env):
     done = (fall | truncation).astype(jnp.float32)
 
     info.update(
-        rng=rng, step=step_count, command=command, phase=phase, q_target=target_new,
-        last_action=action, last_last_action=info["last_action"], last_dq=s["dq"],
+        rng=rng, step=step_count, env_steps=info["env_steps"] + 1, command=command, phase=phase,
+        q_target=target_new, last_action=action, last_last_action=info["last_action"],
+        last_dq=s["dq"],
         last_torque=torque, air_time=air_time * (1.0 - contact), last_contact=contact,
         liftoff_xy=jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
         feet_xy=s["feet_xy"], push=push, truncation=truncation.astype(jnp.float32),
@@ -536,7 +546,8 @@ class MashEnv(brax_base.Env):
       return next_state
     fresh = self.reset(k_reset)
     fresh.info.update(truncation=info["truncation"], fall=info["fall"],
-                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
+                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"],
+                      env_steps=info["env_steps"])
     pick = lambda new, old: jnp.where(done > 0, new, old)
     return next_state.replace(
         pipeline_state=jax.tree.map(pick, fresh.pipeline_state, data),

@@ -56,6 +56,12 @@ class RewardParams:
     collision_force: contact force above which a penalized pair counts (N).
     only_positive: clip the summed reward at zero (legged_gym's default), so early falls are not
       a way out of penalties.
+    penalty_ramp_steps: a curriculum (ours; the paper has none): over this many control steps of
+      each env slot since training began, the scales of ``ramped_terms`` grow linearly from 0 to
+      their full value, so early exploration noise is not taxed. 0 (default): the paper's reward
+      from the first step. Episode resets do not restart the count; a resumed run continues it.
+    ramped_terms: the terms the curriculum phases in. Default: the action-smoothness and
+      torque-rate penalties, the ones that grow with the action noise itself.
   """
 
   tracking_sigma: float = 0.25
@@ -68,6 +74,8 @@ class RewardParams:
   base_height_k: float = 100.0
   collision_force: float = 0.1
   only_positive: bool = True
+  penalty_ramp_steps: int = 0
+  ramped_terms: tuple[str, ...] = ("action_smoothness_1", "action_smoothness_2", "torque_rate")
 
 
 class RewardInputs(NamedTuple):
@@ -92,6 +100,8 @@ class RewardInputs(NamedTuple):
     penalty_force: [P] normal force of each penalized contact pair (N).
     action: [C], last_action: [C], last_last_action: [C].
     dt: control period (s).
+    env_steps: [] control steps this env slot has run since training began (across episodes);
+      read only by the ``penalty_ramp_steps`` curriculum.
   """
 
   q_rel: jax.Array
@@ -120,6 +130,7 @@ class RewardInputs(NamedTuple):
   last_action: jax.Array
   last_last_action: jax.Array
   dt: float
+  env_steps: jax.Array | int = 0
 
 
 def joint_pos(x: RewardInputs, p: RewardParams) -> jax.Array:
@@ -212,9 +223,22 @@ def torque_rate(x: RewardInputs, p: RewardParams) -> jax.Array:
 TERMS = {f.name: globals()[f.name] for f in dataclasses.fields(RewardScales)}
 
 
+def penalty_ramp(env_steps: jax.Array | int, params: RewardParams) -> jax.Array:
+  """[] fraction in [0, 1] of the ``ramped_terms``' scales in force after ``env_steps`` steps."""
+  if params.penalty_ramp_steps <= 0:
+    return jnp.ones(())
+  return jnp.clip(jnp.asarray(env_steps, jnp.float32) / params.penalty_ramp_steps, 0.0, 1.0)
+
+
 def reward_terms(x: RewardInputs, scales: RewardScales, params: RewardParams) -> dict[str, jax.Array]:
-  """Each non-zero term times its scale and dt: ``{name: []}``; their sum is the step reward."""
+  """Each non-zero term times its scale and dt: ``{name: []}``; their sum is the step reward.
+
+  The ``params.ramped_terms`` are further multiplied by :func:`penalty_ramp` (1 unless the
+  curriculum is on).
+  """
+  ramp = penalty_ramp(x.env_steps, params)
   return {name: fn(x, params) * getattr(scales, name) * x.dt
+          * (ramp if name in params.ramped_terms else 1.0)
           for name, fn in TERMS.items() if getattr(scales, name) != 0.0}
 
 

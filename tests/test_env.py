@@ -43,6 +43,7 @@ def _make_simulate(env):
           qpos=qpos, qvel=state.pipeline_state.qvel, z=qpos[:, 2],
           euler=jax.vmap(env_lib.quat_to_euler)(qpos[:, 3:7]), done=state.done,
           reward=state.reward, metrics=state.metrics, step=state.info["step"],
+          env_steps=state.info["env_steps"],
           truncation=state.info["truncation"], fall=state.info["fall"],
           torque=state.info["last_torque"], push=state.info["push"], obs=state.obs)
       return state, trace
@@ -443,6 +444,9 @@ def test_done_and_auto_reset(random_rollout, dr_env):
   np.testing.assert_array_equal(step[done == 0], prev[done == 0] + 1)
   # A fall on the last step counts as a fall, not a time-out.
   np.testing.assert_array_equal(trunc > 0, (done > 0) & (fall == 0) & (prev == EPISODE_LENGTH - 1))
+  # The curriculum's clock runs on through resets: step t of the rollout is env step t + 1.
+  np.testing.assert_array_equal(tr["env_steps"],
+                                np.broadcast_to(np.arange(1, RANDOM_STEPS + 1)[:, None], done.shape))
   assert step.max() < EPISODE_LENGTH
 
 

@@ -190,6 +190,8 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
     (["--set", "env.partition=limbs"], "env.partition 'limbs' is unknown"),
     (["--set", "env.ctrl_dt=0.021"], "env.ctrl_dt 0.021 must be a whole multiple"),
     (["--set", "checkpoint_every=0"], "checkpoint_every must be >= 1"),
+    (["--set", "env.reward_params.ramped_terms=torque_rat"],
+     "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
     (["--set", "algo=sac"], "algo 'sac' is unknown"),
     (["--set", "train.num_envs=0"], "num_envs must be >= 1"),
     (["--seeds", "0"], "seeds must be >= 1"),

@@ -170,6 +170,22 @@ def test_reward_terms_skips_zero_scales(monkeypatch):
   jax.jit(lambda x: rewards.reward_terms(x._replace(dt=DT), scales, P))(_inputs(dt=None))
 
 
+def test_penalty_ramp_phases_in_the_named_terms():
+  """With penalty_ramp_steps = 100 the ramped terms are 0 at step 0, 1/4 at step 25, whole from
+  step 100 on; every other term and the default (no curriculum) are untouched."""
+  scales = rewards.RewardScales()
+  full = rewards.reward_terms(_inputs(), scales, P)
+  ramp = dataclasses.replace(P, penalty_ramp_steps=100)
+  ramped = set(ramp.ramped_terms)
+  assert ramped == {"action_smoothness_1", "action_smoothness_2", "torque_rate"}
+  for steps, fraction in ((0, 0.0), (25, 0.25), (100, 1.0), (400, 1.0)):
+    terms = rewards.reward_terms(_inputs(env_steps=jnp.int32(steps)), scales, ramp)
+    for name in PAPER_TERMS:
+      want = full[name] * (fraction if name in ramped else 1.0)
+      np.testing.assert_allclose(terms[name], want, rtol=1e-6, err_msg=f"{name} at {steps}")
+  assert all(float(full[n]) < 0 for n in ramped)  # they are penalties: the ramp raises the reward
+
+
 def test_total_reward_only_positive_clip():
   """total_reward sums the terms; only_positive clips a negative sum to 0 and leaves positives."""
   negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}   # sum -0.6
