@@ -60,11 +60,22 @@ def _to_flat(tree: Any) -> dict[str, Any]:
           for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0] if not _is_empty(leaf)}
 
 
+# What a policy needs; what learning needs (everything but the env states).
+POLICY_FIELDS = ('params', 'normalizer')
+LEARNING_FIELDS = ('params', 'opt_state', 'normalizer', 'episodes', 'rng', 'iteration')
+
+
+def _in_fields(key: str, fields: Sequence[str] | None) -> bool:
+  """Whether the flat key (``.params[...]...``) lies under one of the top-level ``fields``."""
+  return fields is None or any(key == f'.{f}' or key.startswith((f'.{f}.', f'.{f}['))
+                               for f in fields)
+
+
 def _from_flat(flat: dict[str, Any], template: Any, fields: Sequence[str] | None = None) -> Any:
   """Inverse of :func:`_to_flat`, zero-size leaves rebuilt from the template. With ``fields``,
   only the state's top-level fields of those names are read; every other leaf is zeros."""
   paths, treedef = jax.tree_util.tree_flatten_with_path(template)
-  wanted = lambda key: fields is None or any(key.startswith(f'.{f}') for f in fields)
+  wanted = lambda key: _in_fields(key, fields)
   leaves = []
   for path, leaf in paths:
     key = jax.tree_util.keystr(path)
@@ -97,8 +108,9 @@ def make_manager(directory: str | os.PathLike, max_to_keep: int | None = 5) -> o
 
 
 def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainConfig,
-         wait: bool = True) -> bool:
-  """Saves ``state`` and ``config`` as checkpoint ``step``.
+         wait: bool = True, fields: Sequence[str] | None = None) -> bool:
+  """Saves ``state`` (or only its top-level ``fields``, e.g. :data:`LEARNING_FIELDS`) and
+  ``config`` as checkpoint ``step``.
 
   Args:
     manager: from :func:`make_manager`.
@@ -111,7 +123,8 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
   Returns:
     Whether a checkpoint was saved (Orbax may skip a step already present).
   """
-  flat = _to_flat(jax.tree.map(_key_to_data, state))
+  flat = {k: v for k, v in _to_flat(jax.tree.map(_key_to_data, state)).items()
+          if _in_fields(k, fields)}
   saved = manager.save(step, args=ocp.args.Composite(
       state=ocp.args.StandardSave(flat), config=ocp.args.JsonSave(config_to_dict(config))))
   if wait:

@@ -94,12 +94,30 @@ def _is_mesh(trainer) -> bool:
   return isinstance(trainer, distributed.DistributedTrainer)
 
 
-def init_state(trainer, cfg: experiment.ExperimentConfig):
+def init_state(trainer, cfg: experiment.ExperimentConfig, salt: int = 0):
+  """A fresh train state from the config's seed(s); a non-zero ``salt`` is folded into every key
+  (fresh env states for a resume from a checkpoint without them)."""
+  fold = (lambda key: jax.random.fold_in(key, salt)) if salt else (lambda key: key)
   if _is_mesh(trainer):
-    return trainer.init(jax.random.PRNGKey(cfg.train.seed))
+    return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)))
   if cfg.seeds > 1:
-    return trainer.init(train_lib.seed_keys(cfg.train.seed, cfg.seeds))
-  return trainer.init(jax.random.PRNGKey(cfg.train.seed))
+    return trainer.init(jax.vmap(fold)(train_lib.seed_keys(cfg.train.seed, cfg.seeds)))
+  return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)))
+
+
+def with_fresh_episodes(trainer, cfg: experiment.ExperimentConfig, state, iteration: int):
+  """``state`` (restored without env states) with every env on a fresh episode, drawn with keys
+  of ``iteration``: running episode returns and lengths restart at zero, and the envs' curriculum
+  clock (``info['env_steps']``) reads ``iteration * unroll_length``, as it would have."""
+  fresh = init_state(trainer, cfg, salt=iteration + 1)
+  env_state = fresh.env_state
+  if "env_steps" in env_state.info:
+    info = dict(env_state.info)
+    info["env_steps"] = info["env_steps"] + iteration * cfg.train.unroll_length
+    env_state = env_state.replace(info=info)
+  episodes = state.episodes.replace(running_return=fresh.episodes.running_return,
+                                    running_length=fresh.episodes.running_length)
+  return state.replace(env_state=env_state, episodes=episodes)
 
 
 def state_shapes(trainer, cfg: experiment.ExperimentConfig):
@@ -152,7 +170,7 @@ def load_run(run_dir: str | os.PathLike) -> LoadedRun:
   cfg = load_config(run_dir)
   trainer = build_trainer(cfg)
   # A policy needs only params and normalizer: the env state's layout may have changed since.
-  restored = restore_run(run_dir, trainer, cfg, fields=("params", "normalizer"))
+  restored = restore_run(run_dir, trainer, cfg, fields=checkpoint.POLICY_FIELDS)
   state = restored.state
   norm = state.normalizer if cfg.train.normalize_observations else None
   return LoadedRun(cfg, trainer, state.params, norm, int(restored.step))
@@ -388,13 +406,16 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
     trainer = build_distributed_trainer(cfg) if on_mesh else build_trainer(cfg)
   to_host = distributed.gather_to_host if on_mesh else jax.device_get
   start_iteration = 0
+  saved_fields = None if cfg.checkpoint_env_state else checkpoint.LEARNING_FIELDS
   if resume:
-    restored = restore_run(out, trainer, cfg)
+    restored = restore_run(out, trainer, cfg, fields=saved_fields)
     if primary:
       _set_aside(out, restored.skipped)
     _sync("mash.runs.set_aside")
     state = restored.state
     start_iteration = int(np.asarray(to_host(state.iteration)).reshape(-1)[0])
+    if saved_fields is not None:
+      state = with_fresh_episodes(trainer, cfg, state, start_iteration)
   else:
     state = init_state(trainer, cfg)
     if primary:
@@ -449,7 +470,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
               else None
         last = call == total_calls - 1 or stop
         if (call + 1) % cfg.checkpoint_every == 0 or last:  # collective: every process saves
-          if not checkpoint.save(manager, iteration, state, cfg.train) and primary:
+          if not checkpoint.save(manager, iteration, state, cfg.train,
+                                 fields=saved_fields) and primary:
             print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
                   f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
         sps = derived.env_steps_per_call / dt

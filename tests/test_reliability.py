@@ -284,6 +284,43 @@ def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer
   assert runs.restore_run(run, smoke_trainer, cfg).step == 10
 
 
+def _du(path: Path) -> int:
+  return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def test_checkpoints_without_env_state_are_small_and_resume(smoke_config, smoke_trainer,
+                                                            second_run, tmp_path):
+  """``checkpoint_env_state = False``: step 5 holds no env state (under half the full step's
+  bytes) and the same learning state as the full run's step 5; a resume from it trains 6..10 on
+  fresh episodes (iterations 1..5 logged as before), with the curriculum clock at 5 x 16 steps."""
+  cfg = dataclasses.replace(smoke_config, checkpoint_env_state=False, checkpoint_every=1)
+  run = tmp_path / "lean"
+  runs.train(cfg, run, show_progress=False, max_calls=1, trainer=smoke_trainer)
+  lean_bytes, full_bytes = _du(run / "checkpoints" / "5"), _du(second_run / "checkpoints" / "5")
+  assert lean_bytes < 0.5 * full_bytes, (lean_bytes, full_bytes)
+  lean = runs.restore_run(run, smoke_trainer, cfg, fields=checkpoint.LEARNING_FIELDS).state
+  manager = checkpoint.make_manager(second_run / "checkpoints", max_to_keep=None)
+  full = checkpoint.restore(manager, 5, runs.state_shapes(smoke_trainer, smoke_config)).state
+  manager.close()
+  for name in checkpoint.LEARNING_FIELDS:
+    jax.tree.map(np.testing.assert_array_equal, getattr(lean, name), getattr(full, name))
+  with pytest.raises(runs.RunError):  # a full restore finds no env state in it
+    runs.restore_run(run, smoke_trainer, smoke_config)
+  resumed = runs.with_fresh_episodes(smoke_trainer, cfg, lean, 5)
+  np.testing.assert_array_equal(resumed.env_state.info["env_steps"], 5 * 16)
+  np.testing.assert_array_equal(resumed.episodes.running_length, 0.0)
+  assert jax.tree.map(np.shape, resumed) == jax.tree.map(np.shape, full)
+
+  summary = runs.train(runs.load_config(run), run, resume=True, show_progress=False,
+                       trainer=smoke_trainer)
+  assert summary["iterations"] == 10 and not summary["interrupted"]
+  rows, intact = _rows_without_wall(run / "progress.csv"), _rows_without_wall(
+      second_run / "progress.csv")
+  assert [r["iteration"] for r in rows] == [str(i) for i in range(1, 11)]
+  assert rows[:5] == intact[:5]
+  assert all(np.isfinite(float(r["episode_reward"])) for r in rows[5:])
+
+
 def test_evaluate_cli_on_a_torn_checkpoint_is_one_line(smoke_run, tmp_path):
   """The smoke run's only checkpoint torn: ``evaluate`` says so in one line, exit 2, and leaves
   every file as it was."""
