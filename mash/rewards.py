@@ -101,7 +101,7 @@ class RewardInputs(NamedTuple):
     action: [C], last_action: [C], last_last_action: [C].
     dt: control period (s).
     env_steps: [] control steps this env slot has run since training began (across episodes);
-      read only by the ``penalty_ramp_steps`` curriculum.
+      read only by the ``penalty_ramp_steps`` curriculum (None where it is off).
   """
 
   q_rel: jax.Array
@@ -130,7 +130,7 @@ class RewardInputs(NamedTuple):
   last_action: jax.Array
   last_last_action: jax.Array
   dt: float
-  env_steps: jax.Array | int = 0
+  env_steps: jax.Array | None = None
 
 
 def joint_pos(x: RewardInputs, p: RewardParams) -> jax.Array:
@@ -223,10 +223,12 @@ def torque_rate(x: RewardInputs, p: RewardParams) -> jax.Array:
 TERMS = {f.name: globals()[f.name] for f in dataclasses.fields(RewardScales)}
 
 
-def penalty_ramp(env_steps: jax.Array | int, params: RewardParams) -> jax.Array:
+def penalty_ramp(env_steps: jax.Array | None, params: RewardParams) -> jax.Array:
   """[] fraction in [0, 1] of the ``ramped_terms``' scales in force after ``env_steps`` steps."""
   if params.penalty_ramp_steps <= 0:
     return jnp.ones(())
+  if env_steps is None:
+    raise ValueError("reward_params.penalty_ramp_steps is set but RewardInputs.env_steps is None")
   return jnp.clip(jnp.asarray(env_steps, jnp.float32) / params.penalty_ramp_steps, 0.0, 1.0)
 
 
