@@ -528,8 +528,8 @@ class MashEnv(brax_base.Env):
     info.update(
         rng=rng, step=step_count, env_steps=info["env_steps"] + 1, command=command, phase=phase,
         q_target=target_new, last_action=action, last_last_action=info["last_action"],
-        last_dq=s["dq"],
-        last_torque=torque, air_time=air_time * (1.0 - contact), last_contact=contact,
+        last_dq=s["dq"], last_torque=torque, air_time=air_time * (1.0 - contact),
+        last_contact=contact,
         liftoff_xy=jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
         feet_xy=s["feet_xy"], push=push, truncation=truncation.astype(jnp.float32),
         fall=fall.astype(jnp.float32), nan_reset=(~finite).astype(jnp.float32))
