@@ -3,10 +3,12 @@
 #   1. a bipedal MASH training run at PRESET, stopped by SIGTERM after TRAIN_S seconds (the run saves
 #      a checkpoint and exits 143; a shorter run than the preset is then a prefix of its curve);
 #   2. its evaluation (DR on, 0.4 m/s), the ONNX export and sim-to-sim in MuJoCo C;
-#   3. the benchmark (physics, env step, MASH / our PPO / Brax PPO training, compile) at BATCH;
-#   4. the batch sweep, with whatever time is left before DEADLINE_S.
+#   3. the benchmark (physics, env step, MASH / our PPO / Brax PPO training, compile) at BATCH, or
+#      only BENCH_STAGES of it;
+#   4. the batch sweep, for at most SWEEP_S and whatever time is left before DEADLINE_S.
+# A stage whose limit is 0 is skipped (sim2sim exports the policy itself when EXPORT_S=0).
 # Every stage has its own time limit and log; a failing stage does not stop the next. Results are
-# are written under WORK and packed into $OUT/gpu_results.tar.gz (everything but checkpoints) and
+# written under WORK and packed into $OUT/gpu_results.tar.gz (everything but checkpoints) and
 # $OUT/checkpoint.tar.gz (the run's latest checkpoint).
 #
 #   OUT=/tmp/gpu BATCH=8192 TRAIN_S=270 bash benchmarks/gpu_session.sh
@@ -20,6 +22,9 @@ BENCH_S=${BENCH_S:-130}
 TRAIN_S=${TRAIN_S:-260}
 EVAL_S=${EVAL_S:-60}
 EXPORT_S=${EXPORT_S:-45}
+SIM2SIM_S=${SIM2SIM_S:-$EXPORT_S}
+SWEEP_S=${SWEEP_S:-600}
+BENCH_STAGES=${BENCH_STAGES:-physics,env,mash,ppo,brax_ppo}
 DEADLINE_S=${DEADLINE_S:-545}
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
 EVAL_ARGS=${EVAL_ARGS:-}
@@ -55,10 +60,10 @@ stage train "$TRAIN_S" $PY -m experiments.bipedal --preset "$PRESET" --out "$WOR
 grep -h "iteration" "$WORK/logs/train.log" | tail -n 2
 stage evaluate "$EVAL_S" $PY -m experiments.evaluate --run "$WORK/run" $EVAL_ARGS
 stage export "$EXPORT_S" $PY -m experiments.export --run "$WORK/run"
-stage sim2sim "$EXPORT_S" $PY -m experiments.sim2sim --run "$WORK/run" $SIM2SIM_ARGS
+stage sim2sim "$SIM2SIM_S" $PY -m experiments.sim2sim --run "$WORK/run" $SIM2SIM_ARGS
 stage benchmark "$BENCH_S" $PY -m experiments.benchmark --quick --batch "$BATCH" \
-  --out "$WORK/benchmark.json"
-stage sweep 600 $PY -m experiments.benchmark --sweep batch --batches "$BATCHES" --dir "$WORK"
+  --stages "$BENCH_STAGES" --out "$WORK/benchmark.json"
+stage sweep "$SWEEP_S" $PY -m experiments.benchmark --sweep batch --batches "$BATCHES" --dir "$WORK"
 
 cp "$WORK/logs/machine.txt" "$WORK/run/" 2>/dev/null
 tar -czf "$OUT/gpu_results.tar.gz" -C "$WORK" --exclude=run/checkpoints logs \

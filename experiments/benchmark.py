@@ -6,6 +6,9 @@ our single-agent PPO and Brax's own PPO trainer on the same env, batch, rollout 
 sizes, compile times, and peak memory. Because every figure comes from one process, their ratios
 hold on a noisy machine.
 
+``--stages env,mash,brax_ppo`` measures only the named stages (of ``STAGES``), for a bounded run
+on a lent machine; ratios are given for the pairs measured.
+
 ``--breakdown`` splits an iteration's time into the env rollout, the updates alone and the rest, for
 MASH and PPO (``breakdown.json``). ``--sweep batch`` measures throughput against batch size and
 writes ``benchmarks/scaling_batch.*``; ``--sweep physics`` measures each solver setting tried
@@ -22,6 +25,8 @@ import time
 from pathlib import Path
 
 from experiments import common
+
+STAGES = ("physics", "env", "mash", "ppo", "brax_ppo")
 
 
 def _device_kind() -> str:
@@ -148,9 +153,11 @@ def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
           "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
 
 
-def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None) -> dict:
-  """All figures at one batch. With ``out``, the JSON is rewritten after every stage (``complete``
-  false until the last), so a run stopped early keeps what it measured."""
+def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None,
+                  stages: tuple[str, ...] = STAGES) -> dict:
+  """The figures of ``stages`` (default: all) at one batch. With ``out``, the JSON is rewritten
+  after every stage (``complete`` false until the last), so a run stopped early keeps what it
+  measured."""
   import jax
   from mash import config as train_config
   from mash import env as env_lib
@@ -163,7 +170,9 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
   result = {"device": _device_kind(), "backend": jax.default_backend(),
             "n_devices": jax.device_count(), "batch": batch, "substeps": env.n_substeps,
             "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "complete": False}
+            "stages": list(stages), "complete": False}
+  todo = [s for s in STAGES if s in stages]
+  label = lambda name: f"[{todo.index(name) + 1}/{len(todo)}]"
 
   def save():
     result["peak_rss_mb"] = _peak_rss_mb()
@@ -172,40 +181,50 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
       out.write_text(json.dumps(result, indent=2))
 
   steps = 20 if quick else 50
-  print(f"[1/5] bare mjx.step, batch {batch}", file=sys.stderr, flush=True)
-  result["physics_steps_per_s"], t = throughput.bare_physics(env, batch, steps)
-  print(f"[2/5] env step, batch {batch}", file=sys.stderr, flush=True)
-  env_sps, t_env = throughput.env_steps(env, batch, steps)
-  result["env_steps_per_s"] = env_sps
-  result["env_physics_equivalent_per_s"] = env_sps * env.n_substeps
-  save()
+  if "physics" in todo:
+    print(f"{label('physics')} bare mjx.step, batch {batch}", file=sys.stderr, flush=True)
+    result["physics_steps_per_s"], _ = throughput.bare_physics(env, batch, steps)
+    save()
+  if "env" in todo:
+    print(f"{label('env')} env step, batch {batch}", file=sys.stderr, flush=True)
+    env_sps, _ = throughput.env_steps(env, batch, steps)
+    result["env_steps_per_s"] = env_sps
+    result["env_physics_equivalent_per_s"] = env_sps * env.n_substeps
+    save()
   train_cfg = dataclasses.replace(
       train_config.TrainConfig(), num_envs=batch, unroll_length=unroll, iterations_per_call=iters,
       actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64))
   result["unroll_length"] = unroll
   result["network"] = {"actor": train_cfg.actor_hidden, "critic": train_cfg.critic_hidden}
-  result["train_env_steps_per_s"], result["compile_s"] = {}, {}
-  for i, (name, partition) in enumerate((("mash", "mash"), ("ppo", "ppo"))):
-    print(f"[{3 + i}/5] training: {name}", file=sys.stderr, flush=True)
-    e = env_lib.MashEnv(dataclasses.replace(env_cfg, partition=partition))
-    sps, comp = train_throughput(e, train_cfg, calls=2)
-    result["train_env_steps_per_s"][name] = sps
-    result["compile_s"][name] = comp
-    save()
-  print("[5/5] training: brax_ppo", file=sys.stderr, flush=True)
-  sps, comp = brax_ppo_throughput(env_cfg, train_cfg, calls=2)
-  result["train_env_steps_per_s"]["brax_ppo"] = sps
-  result["compile_s"]["brax_ppo"] = comp
-  tr = result["train_env_steps_per_s"]
-  result["ratios"] = {
-      "env_vs_physics": result["env_physics_equivalent_per_s"] / result["physics_steps_per_s"],
-      "mash_train_vs_env": tr["mash"] / env_sps,
-      "mash_vs_ppo": tr["mash"] / tr["ppo"],
-      "mash_vs_brax_ppo": tr["mash"] / tr["brax_ppo"],
-  }
+  tr = result["train_env_steps_per_s"] = {}
+  result["compile_s"] = {}
+  for name in ("mash", "ppo"):
+    if name in todo:
+      print(f"{label(name)} training: {name}", file=sys.stderr, flush=True)
+      e = env_lib.MashEnv(dataclasses.replace(env_cfg, partition=name))
+      tr[name], result["compile_s"][name] = train_throughput(e, train_cfg, calls=2)
+      save()
+  if "brax_ppo" in todo:
+    print(f"{label('brax_ppo')} training: brax_ppo", file=sys.stderr, flush=True)
+    tr["brax_ppo"], result["compile_s"]["brax_ppo"] = brax_ppo_throughput(env_cfg, train_cfg,
+                                                                          calls=2)
+  result["ratios"] = _ratios(result)
   result["complete"] = True
   save()
   return result
+
+
+def _ratios(result: dict) -> dict:
+  """``env_vs_physics``, ``mash_train_vs_env``, ``mash_vs_ppo``, ``mash_vs_brax_ppo``: those whose
+  two figures were measured."""
+  tr = result.get("train_env_steps_per_s", {})
+  figures = {"physics": result.get("physics_steps_per_s"),
+             "env_physics": result.get("env_physics_equivalent_per_s"),
+             "env": result.get("env_steps_per_s"), **tr}
+  pairs = {"env_vs_physics": ("env_physics", "physics"), "mash_train_vs_env": ("mash", "env"),
+           "mash_vs_ppo": ("mash", "ppo"), "mash_vs_brax_ppo": ("mash", "brax_ppo")}
+  return {name: figures[a] / figures[b] for name, (a, b) in pairs.items()
+          if figures.get(a) is not None and figures.get(b) is not None}
 
 
 def sweep_batch(batches: list[int], task: str, stem: Path | None = None) -> list[dict]:
@@ -304,6 +323,8 @@ def main(argv=None) -> None:
   p.add_argument("--breakdown", action="store_true",
                  help="time the env rollout, the updates and the rest of a MASH and a PPO iteration")
   p.add_argument("--batches", default="64,256,1024,4096")
+  p.add_argument("--stages", default=",".join(STAGES),
+                 help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
   args = p.parse_args(argv)
   with common.user_errors():
@@ -343,7 +364,13 @@ def main(argv=None) -> None:
       return
     if args.sweep is not None:
       raise common.UserError(f"--sweep '{args.sweep}' is unknown; expected batch or physics")
-    result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"))
+    stages = tuple(args.stages.split(","))
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown or not stages:
+      raise common.UserError(f"--stages '{args.stages}': expected a comma-separated subset of "
+                             f"{','.join(STAGES)}")
+    result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"),
+                           stages)
     print(json.dumps(result))
 
 

@@ -207,6 +207,27 @@ def test_cli_bad_config_is_one_line(capsys, tmp_path, argv, words):
   assert not out.exists()
 
 
+def test_benchmark_bad_stage_is_one_line(capsys):
+  from experiments import benchmark
+  with pytest.raises(SystemExit) as e:
+    benchmark.main(["--stages", "env,brax"])
+  lines = _stderr_lines(capsys.readouterr().err)
+  assert e.value.code == 2 and len(lines) == 1, lines
+  assert lines[0].startswith("error: --stages 'env,brax': expected a comma-separated subset of "
+                             "physics,env,mash,ppo,brax_ppo"), lines
+
+
+def test_benchmark_ratios_only_for_measured_pairs():
+  """A partial run (``--stages env,mash,brax_ppo``) reports the ratios it can, nothing else."""
+  from experiments import benchmark
+  result = {"env_steps_per_s": 1000.0, "env_physics_equivalent_per_s": 4000.0,
+            "train_env_steps_per_s": {"mash": 750.0, "brax_ppo": 600.0}}
+  assert benchmark._ratios(result) == {"mash_train_vs_env": 0.75, "mash_vs_brax_ppo": 1.25}
+  result.update(physics_steps_per_s=5000.0, train_env_steps_per_s={"mash": 750.0, "ppo": 800.0})
+  assert benchmark._ratios(result) == {"env_vs_physics": 0.8, "mash_train_vs_env": 0.75,
+                                       "mash_vs_ppo": 0.9375}
+
+
 def test_cli_bad_run_directories_are_one_line(capsys, smoke_run, tmp_path):
   """--resume / --run at: a directory that is not a run, a file, a broken config.json, a run with
   no checkpoint. Nothing in them changes."""
