@@ -2,6 +2,8 @@
 
 Deterministic rollouts of the latest checkpoint at a fixed forward command (domain randomization
 on) -> ``DIR/eval/metrics.json``, ``DIR/eval/trajectories.npz`` and ``DIR/eval/hip_pitch.png``.
+With ``--no-dr`` or ``--no-push`` the same files go to ``DIR/eval_no_dr/`` or ``DIR/eval_no_push/``,
+so a diagnostic never replaces the evaluation with randomization on.
 """
 
 from __future__ import annotations
@@ -48,13 +50,20 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
     _, info = metrics_lib.convergence_iteration(progress["episode_reward"][progress["seed"] == 0])
     result["smoothing_window"] = info["window"]
   if write:
-    out = Path(run_dir) / "eval"
+    out = Path(run_dir) / eval_dir_name(eval_cfg)
     out.mkdir(exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
     np.savez_compressed(out / "trajectories.npz", dt=trajs[0]["dt"], **merged)
     plot_hip_pitch(merged, float(trajs[0]["dt"]), out / "hip_pitch.png", cfg.algo)
   return result
+
+
+def eval_dir_name(eval_cfg) -> str:
+  """``eval`` for the evaluation with every randomized parameter on, else the diagnostic's name."""
+  if not eval_cfg.randomization:
+    return "eval_no_dr"
+  return "eval" if eval_cfg.pushes else "eval_no_push"
 
 
 def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float = 3.0) -> None:
@@ -83,21 +92,26 @@ def main(argv=None) -> None:
   p.add_argument("--episodes", type=int, default=32)
   p.add_argument("--seconds", type=float, default=20.0, help="episode duration")
   p.add_argument("--command-vx", type=float, default=0.4, help="forward command (m/s)")
-  p.add_argument("--no-dr", action="store_true", help="evaluate without domain randomization")
+  p.add_argument("--no-dr", action="store_true",
+                 help="evaluate without domain randomization (writes DIR/eval_no_dr/)")
+  p.add_argument("--no-push", action="store_true",
+                 help="domain randomization without the torso pushes (writes DIR/eval_no_push/)")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
     if args.episodes < 1 or args.seconds <= 0:
       raise common.UserError("--episodes must be >= 1 and --seconds > 0")
     cfg = evaluation.EvalConfig(command_vx=args.command_vx, num_episodes=args.episodes,
-                                episode_s=args.seconds, randomization=not args.no_dr)
+                                episode_s=args.seconds, randomization=not args.no_dr,
+                                pushes=not args.no_push)
+    dr = "off" if args.no_dr else ("on without pushes" if args.no_push else "on")
     print(f"evaluating {args.run}: {args.episodes} episodes x {args.seconds:g} s at vx = "
-          f"{args.command_vx} m/s, DR {'off' if args.no_dr else 'on'}", flush=True)
+          f"{args.command_vx} m/s, DR {dr}", flush=True)
     result = evaluate_run(args.run, cfg)
     shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
                                     "fall_rate", "forward_speed", "command_vx")}
     print(json.dumps(shown, indent=2))
-    print(f"wrote {args.run}/eval/metrics.json, trajectories.npz, hip_pitch.png")
+    print(f"wrote {args.run}/{eval_dir_name(cfg)}/metrics.json, trajectories.npz, hip_pitch.png")
 
 
 if __name__ == "__main__":

@@ -25,6 +25,8 @@ class EvalConfig:
     num_episodes: episodes, rolled out in parallel.
     episode_s: episode duration (s).
     randomization: keep domain randomization on (the robustness we report).
+    pushes: keep the randomized torso pushes on (with ``randomization``); False separates what the
+      pushes cost from what the other randomized parameters cost.
     seed: rollout seed.
   """
 
@@ -32,6 +34,7 @@ class EvalConfig:
   num_episodes: int = 32
   episode_s: float = 20.0
   randomization: bool = True
+  pushes: bool = True
   seed: int = 1234
 
 
@@ -42,6 +45,9 @@ def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.E
                                    yaw_rate=(0.0, 0.0), standing_prob=0.0,
                                    resample_s=10 * cfg.episode_s)
   randomization = dataclasses.replace(env_config.randomization, enabled=cfg.randomization)
+  if not cfg.pushes:
+    randomization = dataclasses.replace(randomization, push_force=(0.0, 0.0),
+                                        push_torque=(0.0, 0.0))
   return dataclasses.replace(env_config, commands=commands, randomization=randomization,
                              episode_length=steps + 1, auto_reset=False)
 

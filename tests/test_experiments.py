@@ -6,6 +6,7 @@ through the ``smoke_run`` fixture (tests/conftest.py).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -93,6 +94,25 @@ def test_evaluate_writes_metrics_and_trajectories(smoke_run):
   pick = alive if alive.any() else np.ones_like(alive)
   assert metrics_lib.action_smoothness(traj["actions"][pick]) == pytest.approx(
       result["S_action"], rel=1e-5)
+
+
+def test_evaluation_without_pushes_keeps_the_other_randomization():
+  """``--no-push``: pushes drawn as zero, every other randomized range as trained; its files go
+  beside ``eval/``, never over it."""
+  from mash import env as env_lib, evaluation
+  from experiments.evaluate import eval_dir_name
+  trained = env_lib.EnvConfig()
+  no_push = evaluation.EvalConfig(pushes=False)
+  r = evaluation.eval_env_config(trained, no_push).randomization
+  assert r.enabled and r.push_force == (0.0, 0.0) and r.push_torque == (0.0, 0.0)
+  assert r.push_force != trained.randomization.push_force
+  assert r == dataclasses.replace(trained.randomization, push_force=(0.0, 0.0),
+                                  push_torque=(0.0, 0.0))
+  assert evaluation.eval_env_config(trained, evaluation.EvalConfig()).randomization == \
+      trained.randomization
+  assert eval_dir_name(evaluation.EvalConfig()) == "eval"
+  assert eval_dir_name(no_push) == "eval_no_push"
+  assert eval_dir_name(evaluation.EvalConfig(randomization=False)) == "eval_no_dr"
 
 
 def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
