@@ -10,6 +10,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,6 +67,20 @@ def test_overrides_apply_and_reject():
                  dict(task="bipedal", preset="huge"), dict(task="bipedal", ablation="magic")):
     with pytest.raises(experiment.ConfigError):
       experiment.make_config(**kwargs)
+
+
+def test_gpu_preset_is_the_measured_walking_run():
+  """The gpu preset is the config of the H100 run that walked (recorded in benchmarks/results),
+  but for the run's lean checkpoints, a choice of that lease, not of the preset."""
+  recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
+      "2026-11-26_h100_gpu_bipedal_mash_penalty_ramp16k" / "config.json"
+  measured = experiment.from_json(recorded.read_text())
+  preset = experiment.make_config("bipedal", "mash", "gpu")
+  assert dataclasses.replace(measured, checkpoint_env_state=True) == preset
+  assert preset.env.reward_params.penalty_ramp_steps == 16_000
+  assert preset.train.init_log_std == 0.0
+  cpu = experiment.make_config("bipedal", "mash", "cpu")
+  assert cpu.env.reward_params.penalty_ramp_steps == 0
 
 
 def test_evaluate_writes_metrics_and_trajectories(smoke_run):
