@@ -27,9 +27,15 @@ class TrainConfig:
       checkpointing and evaluation happen between calls). Our choice.
     num_epochs: passes over each rollout batch (rsl_rl ``num_learning_epochs`` = 5).
     num_minibatches: minibatches per epoch (rsl_rl ``num_mini_batches`` = 4).
-    learning_rate: Adam step size, fixed. legged_gym starts at 1e-3 and humanoid-gym at 1e-5, both
-      with an adaptive-KL schedule; we keep a fixed rate and take the standard PPO value 3e-4
-      (Schulman et al. 2017, continuous control) as the default.
+    learning_rate: Adam step size (the start value under ``learning_rate_schedule='adaptive_kl'``).
+      legged_gym starts at 1e-3 and humanoid-gym at 1e-5, both with an adaptive-KL schedule; by
+      default we keep a fixed rate and take the standard PPO value 3e-4 (Schulman et al. 2017,
+      continuous control).
+    learning_rate_schedule: ``'fixed'`` or ``'adaptive_kl'`` (rsl_rl's ``schedule='adaptive'``):
+      before every minibatch step the rate is divided by 1.5 when the policy's KL from the
+      rollout policy exceeds ``2 * desired_kl`` and multiplied by 1.5 when it is below
+      ``desired_kl / 2`` (and not 0), within [1e-5, 1e-2]. The KL is the loss's ``approx_kl``.
+    desired_kl: the KL the adaptive schedule aims at (rsl_rl ``desired_kl`` = 0.01).
     gamma: discount (legged_gym 0.99; humanoid-gym uses 0.994).
     gae_lambda: GAE lambda (legged_gym 0.95; humanoid-gym uses 0.9).
     clip_epsilon: policy ratio clip (rsl_rl ``clip_param`` = 0.2).
@@ -64,6 +70,8 @@ class TrainConfig:
   num_epochs: int = 5
   num_minibatches: int = 4
   learning_rate: float = 3e-4
+  learning_rate_schedule: str = 'fixed'
+  desired_kl: float = 0.01
   gamma: float = 0.99
   gae_lambda: float = 0.95
   clip_epsilon: float = 0.2
@@ -81,6 +89,11 @@ class TrainConfig:
   normalize_observations: bool = True
   obs_clip: float = 10.0
   seed: int = 0
+
+
+LEARNING_RATE_SCHEDULES = ('fixed', 'adaptive_kl')
+# rsl_rl's bounds for the adaptive schedule.
+MIN_LEARNING_RATE, MAX_LEARNING_RATE = 1e-5, 1e-2
 
 
 class Derived(NamedTuple):
@@ -122,6 +135,11 @@ def derived(config: TrainConfig, num_devices: int = 1) -> Derived:
                'num_minibatches'):
     if getattr(config, name) < 1:
       raise ValueError(f'TrainConfig.{name} must be >= 1, got {getattr(config, name)}.')
+  if config.learning_rate_schedule not in LEARNING_RATE_SCHEDULES:
+    raise ValueError(f"TrainConfig.learning_rate_schedule '{config.learning_rate_schedule}' is "
+                     f"unknown; expected one of {', '.join(LEARNING_RATE_SCHEDULES)}.")
+  if config.desired_kl <= 0:
+    raise ValueError(f'TrainConfig.desired_kl must be > 0, got {config.desired_kl}.')
   if num_devices < 1 or config.num_envs % num_devices:
     raise ValueError(f'TrainConfig.num_envs={config.num_envs} must be divisible by the number of '
                      f'devices ({num_devices}).')

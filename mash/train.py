@@ -32,7 +32,7 @@ from mash import losses
 from mash import networks as nets
 from mash import normalization
 from mash.agents import AgentGroup, assemble_action
-from mash.config import TrainConfig, derived
+from mash.config import MAX_LEARNING_RATE, MIN_LEARNING_RATE, TrainConfig, derived
 
 Metrics = dict[str, jax.Array]
 
@@ -204,13 +204,29 @@ class Trainer(NamedTuple):
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-  """Global-norm gradient clipping followed by Adam at a fixed learning rate.
+  """Global-norm gradient clipping followed by Adam.
 
-  The update runs on all parameters raveled into one vector (``optax.flatten``): the same math,
-  but a handful of fused kernels instead of a few per parameter array, which shortens compilation.
+  Under ``learning_rate_schedule='adaptive_kl'`` the rate lives in the optimizer state
+  (``optax.inject_hyperparams``; read and set with ``optax.tree_utils.tree_get/tree_set`` under the
+  name ``learning_rate``), so it is checkpointed and resumed with it. The update runs on all
+  parameters raveled into one vector (``optax.flatten``): the same math, but a handful of fused
+  kernels instead of a few per parameter array, which shortens compilation.
   """
-  return optax.flatten(optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                                   optax.adam(config.learning_rate)))
+  if config.learning_rate_schedule == 'adaptive_kl':
+    adam = optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate)
+  else:
+    adam = optax.adam(config.learning_rate)
+  return optax.flatten(optax.chain(optax.clip_by_global_norm(config.max_grad_norm), adam))
+
+
+def adapt_learning_rate(learning_rate: jax.Array, kl: jax.Array,
+                        desired_kl: float) -> jax.Array:
+  """rsl_rl's adaptive rule: ``[] -> []``, the rate / 1.5 when ``kl > 2 desired_kl``, x 1.5 when
+  ``0 < kl < desired_kl / 2``, else unchanged; clipped to [MIN_LEARNING_RATE, MAX_LEARNING_RATE]."""
+  lower = jnp.maximum(learning_rate / 1.5, MIN_LEARNING_RATE)
+  higher = jnp.minimum(learning_rate * 1.5, MAX_LEARNING_RATE)
+  return jnp.where(kl > 2.0 * desired_kl, lower,
+                   jnp.where((kl < 0.5 * desired_kl) & (kl > 0.0), higher, learning_rate))
 
 
 def _obs_sizes(groups: tuple[AgentGroup, ...], critic_obs_size: int) -> dict[str, int]:
@@ -331,7 +347,18 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
     if axis_name is not None:
       grads = jax.lax.pmean(grads, axis_name)
       metrics = jax.lax.pmean(metrics, axis_name)
-    updates, opt_state = optimizer.update(grads, opt.opt_state, opt.params)
+    opt_state = opt.opt_state
+    if config.learning_rate_schedule == 'adaptive_kl':
+      # The KL of the current policy from the rollout's on this minibatch, before the step (as
+      # rsl_rl); averaged over devices above, so every device sets the same rate.
+      learning_rate = adapt_learning_rate(
+          optax.tree_utils.tree_get(opt_state, 'learning_rate'), metrics['approx_kl'],
+          config.desired_kl)
+      opt_state = optax.tree_utils.tree_set(opt_state, learning_rate=learning_rate)
+      metrics = {**metrics, 'learning_rate': learning_rate}
+    else:
+      metrics = {**metrics, 'learning_rate': jnp.asarray(config.learning_rate, jnp.float32)}
+    updates, opt_state = optimizer.update(grads, opt_state, opt.params)
     return OptimizerState(optax.apply_updates(opt.params, updates), opt_state), metrics
 
   def sgd(opt: OptimizerState, normalizer: normalization.Normalizer | None,

@@ -194,6 +194,8 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
      "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
     (["--set", "algo=sac"], "algo 'sac' is unknown"),
     (["--set", "train.num_envs=0"], "num_envs must be >= 1"),
+    (["--set", "train.learning_rate_schedule=cosine"],
+     "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl"),
     (["--seeds", "0"], "seeds must be >= 1"),
     (["--resume", "DIR", "--set", "train.num_iterations=20"], "--set cannot be combined"),
 ])
