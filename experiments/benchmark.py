@@ -366,7 +366,7 @@ def main(argv=None) -> None:
       raise common.UserError(f"--sweep '{args.sweep}' is unknown; expected batch or physics")
     stages = tuple(args.stages.split(","))
     unknown = [s for s in stages if s not in STAGES]
-    if unknown or not stages:
+    if unknown:
       raise common.UserError(f"--stages '{args.stages}': expected a comma-separated subset of "
                              f"{','.join(STAGES)}")
     result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"),
