@@ -3,7 +3,8 @@
 Deterministic rollouts of the latest checkpoint at a fixed forward command (domain randomization
 on) -> ``DIR/eval/metrics.json``, ``DIR/eval/trajectories.npz`` and ``DIR/eval/hip_pitch.png``.
 With ``--no-dr`` or ``--no-push`` the same files go to ``DIR/eval_no_dr/`` or ``DIR/eval_no_push/``,
-so a diagnostic never replaces the evaluation with randomization on.
+with ``--push-interval S`` to ``DIR/eval_push_interval_<S>s/``, so a diagnostic never replaces the
+evaluation as trained.
 """
 
 from __future__ import annotations
@@ -60,10 +61,15 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
 
 
 def eval_dir_name(eval_cfg) -> str:
-  """``eval`` for the evaluation with every randomized parameter on, else the diagnostic's name."""
+  """``eval`` for the evaluation with every randomized parameter on as trained, else the
+  diagnostic's name."""
   if not eval_cfg.randomization:
     return "eval_no_dr"
-  return "eval" if eval_cfg.pushes else "eval_no_push"
+  if not eval_cfg.pushes:
+    return "eval_no_push"
+  if eval_cfg.push_interval_s is not None:
+    return f"eval_push_interval_{eval_cfg.push_interval_s:g}s"
+  return "eval"
 
 
 def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float = 3.0) -> None:
@@ -96,15 +102,23 @@ def main(argv=None) -> None:
                  help="evaluate without domain randomization (writes DIR/eval_no_dr/)")
   p.add_argument("--no-push", action="store_true",
                  help="domain randomization without the torso pushes (writes DIR/eval_no_push/)")
+  p.add_argument("--push-interval", type=float, default=None, metavar="S",
+                 help="hold each push S seconds (0: a new push every control step) instead of the "
+                      "run's own setting (writes DIR/eval_push_interval_<S>s/)")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
     if args.episodes < 1 or args.seconds <= 0:
       raise common.UserError("--episodes must be >= 1 and --seconds > 0")
+    if args.push_interval is not None and (args.push_interval < 0 or args.no_dr or args.no_push):
+      raise common.UserError("--push-interval takes seconds >= 0 and needs the pushes on "
+                             "(not with --no-dr or --no-push)")
     cfg = evaluation.EvalConfig(command_vx=args.command_vx, num_episodes=args.episodes,
                                 episode_s=args.seconds, randomization=not args.no_dr,
-                                pushes=not args.no_push)
+                                pushes=not args.no_push, push_interval_s=args.push_interval)
     dr = "off" if args.no_dr else ("on without pushes" if args.no_push else "on")
+    if args.push_interval is not None:
+      dr += f", each push held {args.push_interval:g} s"
     print(f"evaluating {args.run}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)
     result = evaluate_run(args.run, cfg)

@@ -453,7 +453,7 @@ class MashEnv(brax_base.Env):
     dr = info["dr"]
     model = self.model_for(dr)
 
-    # Pushes: a new one every push_interval_s, held in between.
+    # Pushes: a new one every push_interval_s (every step at 0), held in between.
     push_every = max(1, int(round(cfg.randomization.push_interval_s / cfg.ctrl_dt)))
     new_push = (info["step"] + 1) % push_every == 0
     push = jnp.where(new_push, self._sample_push(k_push), info["push"])

@@ -27,6 +27,9 @@ class EvalConfig:
     randomization: keep domain randomization on (the robustness we report).
     pushes: keep the randomized torso pushes on (with ``randomization``); False separates what the
       pushes cost from what the other randomized parameters cost.
+    push_interval_s: how long each push is held (s; 0: a new push every control step); None keeps
+      the run's own (``DomainRandConfig.push_interval_s``), e.g. 1.0 to test a per-step-trained
+      policy against held pushes, or 0 to evaluate an older held-push run as runs now train.
     seed: rollout seed.
   """
 
@@ -35,6 +38,7 @@ class EvalConfig:
   episode_s: float = 20.0
   randomization: bool = True
   pushes: bool = True
+  push_interval_s: float | None = None
   seed: int = 1234
 
 
@@ -48,6 +52,8 @@ def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.E
   if not cfg.pushes:
     randomization = dataclasses.replace(randomization, push_force=(0.0, 0.0),
                                         push_torque=(0.0, 0.0))
+  if cfg.push_interval_s is not None:
+    randomization = dataclasses.replace(randomization, push_interval_s=cfg.push_interval_s)
   return dataclasses.replace(env_config, commands=commands, randomization=randomization,
                              episode_length=steps + 1, auto_reset=False)
 

@@ -425,6 +425,8 @@ def test_random_rollout_is_finite(random_rollout, dr_env):
   assert np.all(np.abs(tr["torque"]) <= tau_max + 1e-4)
   assert np.all(np.abs(tr["push"][..., :2]) <= 20.0) and np.all(np.abs(tr["push"][..., 2:]) <= 5.0)
   assert np.any(tr["push"] != 0.0)
+  # By default a new push every control step (the paper: "at each simulation step"), not held.
+  assert np.all(np.any(tr["push"][1:] != tr["push"][:-1], axis=-1))
 
 
 def test_done_and_auto_reset(random_rollout, dr_env):

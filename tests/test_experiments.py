@@ -71,14 +71,19 @@ def test_overrides_apply_and_reject():
 
 def test_gpu_preset_is_the_measured_walking_run():
   """The gpu preset is the config of the H100 run that walked (recorded in benchmarks/results),
-  but for the run's lean checkpoints, a choice of that lease, not of the preset."""
+  but for the run's lean checkpoints, a choice of that lease, and its pushes, held 1 s before the
+  default became the paper's per-step draw (that policy falls in 0 of 32 episodes under it)."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
       "2026-11-26_h100_gpu_bipedal_mash_penalty_ramp16k" / "config.json"
   measured = experiment.from_json(recorded.read_text())
+  assert measured.env.randomization.push_interval_s == 1.0
   preset = experiment.make_config("bipedal", "mash", "gpu")
-  assert dataclasses.replace(measured, checkpoint_env_state=True) == preset
+  per_step_pushes = dataclasses.replace(measured.env.randomization, push_interval_s=0.0)
+  assert dataclasses.replace(measured, checkpoint_env_state=True, env=dataclasses.replace(
+      measured.env, randomization=per_step_pushes)) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 16_000
   assert preset.train.init_log_std == 0.0
+
   cpu = experiment.make_config("bipedal", "mash", "cpu")
   assert cpu.env.reward_params.penalty_ramp_steps == 0
 
@@ -128,6 +133,13 @@ def test_evaluation_without_pushes_keeps_the_other_randomization():
   assert eval_dir_name(evaluation.EvalConfig()) == "eval"
   assert eval_dir_name(no_push) == "eval_no_push"
   assert eval_dir_name(evaluation.EvalConfig(randomization=False)) == "eval_no_dr"
+  # --push-interval: only the hold time changes, and the files go beside eval/ too.
+  held = evaluation.EvalConfig(push_interval_s=1.0)
+  r = evaluation.eval_env_config(trained, held).randomization
+  assert r == dataclasses.replace(trained.randomization, push_interval_s=1.0) != \
+      trained.randomization
+  assert eval_dir_name(held) == "eval_push_interval_1s"
+  assert eval_dir_name(evaluation.EvalConfig(push_interval_s=0.0)) == "eval_push_interval_0s"
 
 
 def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -142,6 +154,7 @@ def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     (("experiments.bipedal", "--set", "train.learning_rate"), "path=value"),
     (("experiments.bipedal", "--resume", "/nonexistent/run"), "does not exist"),
     (("experiments.evaluate", "--run", "/nonexistent/run"), "does not exist"),
+    (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"), "--push-interval"),
 ])
 def test_cli_bad_input_is_one_line(args, words):
   """Bad input: exit status 2, one line on stderr naming the input, no traceback."""
