@@ -118,7 +118,8 @@ def main(argv=None) -> None:
                                 pushes=not args.no_push, push_interval_s=args.push_interval)
     dr = "off" if args.no_dr else ("on without pushes" if args.no_push else "on")
     if args.push_interval is not None:
-      dr += f", each push held {args.push_interval:g} s"
+      dr += (", a new push every control step" if args.push_interval == 0
+             else f", each push held {args.push_interval:g} s")
     print(f"evaluating {args.run}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)
     result = evaluate_run(args.run, cfg)
