@@ -63,7 +63,8 @@ class ExperimentConfig:
 def _preset_train(preset: str) -> train_config.TrainConfig:
   # The paper's smoothness and torque-rate penalties are ~50x humanoid-gym's: at an initial action
   # std of 1 they outweigh every positive term, the only-positive clip makes the reward 0 and
-  # nothing is learned (measured: step reward 5e-4 at std 1, ~0.1 at std 0.3). Start at std 0.3.
+  # nothing is learned (measured: step reward 5e-4 at std 1, ~0.1 at std 0.3). Start at std 0.3
+  # without the penalty curriculum (smoke); cpu and gpu start at std 1 under it (_preset_env).
   base = dataclasses.replace(train_config.TrainConfig(), init_log_std=-1.2)
   if preset == "smoke":
     return dataclasses.replace(base, num_iterations=10, unroll_length=16, num_envs=64,
@@ -71,12 +72,15 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
                                actor_hidden=(64, 64), critic_hidden=(64, 64),
                                learning_rate=1e-3)
   if preset == "cpu":
-    # 1000 iterations (6.1 M steps): about 23 min on 2 idle cores (4,400 env steps/s measured with
-    # this preset), inside the 30 min a CPU user should wait; 47 min was measured on shared cores.
+    # 1000 iterations (6.1 M steps): 24 min measured on 2 cores (4,300 env steps/s), inside the
+    # 30 min a CPU user should wait. Action std from 1 under the penalty curriculum of _preset_env,
+    # which ends at iteration 1000: bipedal MASH walks at 0.36 m/s (0.4 commanded) with 20 % falls
+    # (128 episodes, DR on); 2500 iterations (60 min) did no better (21 %, 0.26 m/s).
+    # benchmarks/results/2026-11-26_cpu_bipedal_mash_step_pushes/.
     return dataclasses.replace(base, num_iterations=1000, unroll_length=24, num_envs=256,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
                                actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64),
-                               learning_rate=1e-3)
+                               learning_rate=1e-3, init_log_std=0.0)
   # gpu: the paper's 3000 iterations of 48 steps, 4096 envs, with the action std starting at 1
   # under the penalty curriculum of _preset_env (measured on an H100, bipedal MASH: it walks at
   # 0.18-0.19 m/s with 12-16 % falls by 167-263 M steps, where two runs of the paper's reward from
@@ -84,9 +88,10 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
   return dataclasses.replace(base, init_log_std=0.0)
 
 
-# Control steps per env over which the gpu preset phases in the smoothness and torque-rate
-# penalties: iteration 333 of 3000 at 48 steps per iteration.
+# Control steps per env over which the gpu and cpu presets phase in the smoothness and torque-rate
+# penalties: iteration 333 of 3000 at 48 steps per iteration; iteration 1000 of 1000 at 24.
 GPU_PENALTY_RAMP_STEPS = 16_000
+CPU_PENALTY_RAMP_STEPS = 24_000
 
 
 def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
@@ -94,9 +99,10 @@ def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
   cfg = env_lib.EnvConfig(task=task, partition=partition)
   if preset == "smoke":
     cfg = dataclasses.replace(cfg, episode_length=200)
-  if preset == "gpu":
+  ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_PENALTY_RAMP_STEPS}.get(preset, 0)
+  if ramp:
     cfg = dataclasses.replace(cfg, reward_params=dataclasses.replace(
-        cfg.reward_params, penalty_ramp_steps=GPU_PENALTY_RAMP_STEPS))
+        cfg.reward_params, penalty_ramp_steps=ramp))
   return cfg
 
 
