@@ -1,7 +1,7 @@
 """Experiment configuration: task + algorithm + preset + env and trainer configs, as one JSON file.
 
 ``ExperimentConfig`` is what a run directory's ``config.json`` holds. Presets fix the sizes
-(``smoke`` proves the pipeline in minutes, ``cpu`` is the best a 2-core CPU hour allows, ``gpu`` is
+(``smoke`` proves the pipeline in minutes, ``cpu`` is the best half hour of a 2-core CPU, ``gpu`` is
 the paper's scale); ``--set path=value`` overrides any nested field, e.g.
 ``--set train.learning_rate=1e-3`` or ``--set env.reward_scales.joint_pos=2.0``.
 """
