@@ -297,6 +297,30 @@ def _write(result: dict, stem: Path) -> None:
     lines.append(f"MASH training (batch {result['train_batch']}): "
                  f"{s['second_core_buys_training']:.2f}x.")
   stem.with_suffix('.md').write_text('\n'.join(lines) + '\n')
+  _plot(result['rows'], stem.with_suffix('.png'))
+
+
+def _plot(rows: list[dict], path: Path) -> None:
+  """Bars of env steps/s per variant, env step and training side by side, each labelled with its
+  ratio to one process."""
+  import matplotlib
+  matplotlib.use('Agg')
+  import matplotlib.pyplot as plt
+  fig, ax = plt.subplots(figsize=(6.5, 3.5))
+  names = [r['variant'].replace('_', ' ') for r in rows]
+  colors = ['tab:green' if r['variant'].startswith('train') else 'tab:blue' for r in rows]
+  bars = ax.bar(range(len(rows)), [r['env_steps_per_s'] for r in rows], color=colors)
+  for bar, r in zip(bars, rows):
+    ax.annotate(f"{r['ratio_vs_one_process']:.2f}x", (bar.get_x() + bar.get_width() / 2,
+                bar.get_height()), ha='center', va='bottom', fontsize=8)
+  ax.set_xticks(range(len(rows)), names, rotation=20, ha='right', fontsize=8)
+  ax.set_ylabel('env steps / s')
+  ax.set_title('one process vs two joined by jax.distributed (blue: env step, green: MASH training)',
+               fontsize=8)
+  ax.grid(axis='y', alpha=0.3)
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
 
 
 def main(argv=None) -> None:
@@ -309,7 +333,7 @@ def main(argv=None) -> None:
   p.add_argument('--train', action='store_true', help='also time MASH training, 1 vs 2 processes')
   p.add_argument('--train-batch', type=int, default=256, help='global env batch of --train')
   p.add_argument('--platform', default='cpu', help='JAX platform of the workers')
-  p.add_argument('--out', default='benchmarks/scaling_devices', help='output stem (.json, .md)')
+  p.add_argument('--out', default='benchmarks/scaling_devices', help='output stem (.json, .md, .png)')
   # Worker-side arguments (set by the launcher).
   hidden = argparse.SUPPRESS
   p.add_argument('--worker', default=None, help=hidden)

@@ -230,6 +230,29 @@ def test_benchmark_ratios_only_for_measured_pairs():
                                        "mash_vs_ppo": 0.9375}
 
 
+def test_device_scaling_writes_table_and_plot(tmp_path):
+  """``benchmark_devices`` writes its JSON, a markdown table with every row, and the PNG plot."""
+  import json
+  from experiments import benchmark_devices
+  row = lambda variant, n, sps, ratio: {
+      "variant": variant, "processes": n, "envs_per_process": 256 // n, "env_steps_per_s": sps,
+      "physics_steps_per_s": 4 * sps, "cpu_cores_used": float(n), "compile_s": 30.0,
+      "ratio_vs_one_process": ratio}
+  result = {"batch": 256, "steps": 20, "task": "bipedal", "date": "today", "cpu_count": 2,
+            "load_average_at_start": 0.5, "train_batch": 64,
+            "summary": {"second_core_buys": 1.9, "second_core_buys_without_collective": 2.0,
+                        "collective_cost": 0.05, "second_core_buys_training": 1.5},
+            "rows": [row("one_process", 1, 1000.0, 1.0), row("two_process_mesh", 2, 1900.0, 1.9),
+                     row("train_one_process", 1, 800.0, 1.0),
+                     row("train_two_process", 2, 1200.0, 1.5)]}
+  stem = tmp_path / "scaling_devices"
+  benchmark_devices._write(result, stem)
+  assert json.loads(stem.with_suffix(".json").read_text()) == result
+  table = stem.with_suffix(".md").read_text()
+  assert "| two_process_mesh | 2 | 128 | 1.9e+03 |" in table and "**1.90x**" in table
+  assert stem.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_cli_bad_run_directories_are_one_line(capsys, smoke_run, tmp_path):
   """--resume / --run at: a directory that is not a run, a file, a broken config.json, a run with
   no checkpoint. Nothing in them changes."""
