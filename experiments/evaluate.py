@@ -4,7 +4,8 @@ Deterministic rollouts of the latest checkpoint at a fixed forward command (doma
 on) -> ``DIR/eval/metrics.json``, ``DIR/eval/trajectories.npz`` and ``DIR/eval/hip_pitch.png``.
 With ``--no-dr`` or ``--no-push`` the same files go to ``DIR/eval_no_dr/`` or ``DIR/eval_no_push/``,
 with ``--push-interval S`` to ``DIR/eval_push_interval_<S>s/``, so a diagnostic never replaces the
-evaluation as trained.
+evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
+the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name.
 """
 
 from __future__ import annotations
@@ -17,12 +18,14 @@ import numpy as np
 from experiments import common
 
 
-def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
-  """Evaluates every seed of a run; returns (and writes) the metrics."""
+def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
+                 iteration: int | None = None) -> dict:
+  """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``);
+  returns (and writes) the metrics."""
   from mash import env as env_lib, evaluation, metrics as metrics_lib, networks, runs
 
   eval_cfg = eval_cfg or evaluation.EvalConfig()
-  run = runs.load_run(run_dir)
+  run = runs.load_run(run_dir, iteration)
   cfg = run.config
   env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, eval_cfg))
   policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
@@ -42,6 +45,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
   result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys if per_seed[0][k] is not None}
   result["T_conv"] = result.get("T_conv")
   result["command_vx"] = eval_cfg.command_vx
+  result["iteration"] = run.iteration
   result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"]
                    for k in keys if per_seed[0][k] is not None}
   result["per_seed"] = per_seed
@@ -51,7 +55,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
     _, info = metrics_lib.convergence_iteration(progress["episode_reward"][progress["seed"] == 0])
     result["smoothing_window"] = info["window"]
   if write:
-    out = Path(run_dir) / eval_dir_name(eval_cfg)
+    out = Path(run_dir) / eval_dir_name(eval_cfg, iteration)
     out.mkdir(exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
@@ -60,16 +64,17 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True) -> dict:
   return result
 
 
-def eval_dir_name(eval_cfg) -> str:
-  """``eval`` for the evaluation with every randomized parameter on as trained, else the
-  diagnostic's name."""
+def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
+  """``eval`` for the evaluation of the latest checkpoint with every randomized parameter on as
+  trained, else the diagnostic's name; ``_it<N>`` appended for the checkpoint of iteration N."""
+  suffix = "" if iteration is None else f"_it{iteration}"
   if not eval_cfg.randomization:
-    return "eval_no_dr"
+    return "eval_no_dr" + suffix
   if not eval_cfg.pushes:
-    return "eval_no_push"
+    return "eval_no_push" + suffix
   if eval_cfg.push_interval_s is not None:
-    return f"eval_push_interval_{eval_cfg.push_interval_s:g}s"
-  return "eval"
+    return f"eval_push_interval_{eval_cfg.push_interval_s:g}s" + suffix
+  return "eval" + suffix
 
 
 def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float = 3.0) -> None:
@@ -105,11 +110,16 @@ def main(argv=None) -> None:
   p.add_argument("--push-interval", type=float, default=None, metavar="S",
                  help="hold each push S seconds (0: a new push every control step) instead of the "
                       "run's own setting (writes DIR/eval_push_interval_<S>s/)")
+  p.add_argument("--iteration", type=int, default=None, metavar="N",
+                 help="evaluate the checkpoint saved at iteration N, not the latest (appends "
+                      "_it<N> to the output directory)")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
     if args.episodes < 1 or args.seconds <= 0:
       raise common.UserError("--episodes must be >= 1 and --seconds > 0")
+    if args.iteration is not None and args.iteration < 1:
+      raise common.UserError(f"--iteration must be a saved iteration >= 1, got {args.iteration}")
     if args.push_interval is not None and (args.push_interval < 0 or args.no_dr or args.no_push):
       raise common.UserError("--push-interval takes seconds >= 0 and needs the pushes on "
                              "(not with --no-dr or --no-push)")
@@ -120,13 +130,14 @@ def main(argv=None) -> None:
     if args.push_interval is not None:
       dr += (", a new push every control step" if args.push_interval == 0
              else f", each push held {args.push_interval:g} s")
-    print(f"evaluating {args.run}: {args.episodes} episodes x {args.seconds:g} s at vx = "
+    which = "" if args.iteration is None else f" (checkpoint of iteration {args.iteration})"
+    print(f"evaluating {args.run}{which}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)
-    result = evaluate_run(args.run, cfg)
+    result = evaluate_run(args.run, cfg, iteration=args.iteration)
     shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
                                     "fall_rate", "forward_speed", "command_vx")}
     print(json.dumps(shown, indent=2))
-    print(f"wrote {args.run}/{eval_dir_name(cfg)}/metrics.json, trajectories.npz, hip_pitch.png")
+    print(f"wrote {args.run}/{eval_dir_name(cfg, args.iteration)}/metrics.json, trajectories.npz, hip_pitch.png")
 
 
 if __name__ == "__main__":

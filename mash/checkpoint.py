@@ -211,8 +211,8 @@ def _quiet_absl() -> Iterator[None]:
 
 
 def restore_latest(directory: str | os.PathLike, template_state: Any,
-                   fields: Sequence[str] | None = None) -> Restored | None:
-  """Restores the newest checkpoint under ``directory`` that restores.
+                   fields: Sequence[str] | None = None, step: int | None = None) -> Restored | None:
+  """Restores the newest checkpoint under ``directory`` that restores (or the one of ``step``).
 
   Steps are tried newest first; one that fails (torn files, a template that does not match) is
   reported on stderr as ``warning: ...`` and the next older one is tried. Nothing is deleted.
@@ -221,6 +221,8 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
     directory: a checkpoint directory written through :func:`make_manager` / :func:`save`.
     template_state: a train state (or its ``eval_shape``) giving structure, shapes and dtypes.
     fields: restore only these top-level fields (see :func:`restore`).
+    step: restore this step only (no fallback to older ones); CheckpointError naming the steps
+      there are when it is not one of them.
 
   Returns:
     The restored checkpoint (``skipped`` lists the newer steps that failed), or ``None`` when
@@ -235,6 +237,11 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
     manager = make_manager(directory, max_to_keep=None)
     try:
       steps = sorted(manager.all_steps(), reverse=True)
+      if step is not None:
+        if step not in steps:
+          raise CheckpointError(f"no checkpoint of step {step} in '{directory}' (there are "
+                                f"steps {', '.join(map(str, sorted(steps))) or 'none'})")
+        steps = [step]
       first_error = None
       for i, step in enumerate(steps):
         try:

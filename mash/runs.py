@@ -151,12 +151,14 @@ class LoadedRun(NamedTuple):
 
 
 def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentConfig,
-                fields: tuple[str, ...] | None = None) -> checkpoint.Restored:
+                fields: tuple[str, ...] | None = None,
+                iteration: int | None = None) -> checkpoint.Restored:
   """The newest checkpoint of a run that restores (older ones are tried, with a warning, when
-  newer ones are torn); RunError (one line) when there is none."""
+  newer ones are torn), or the one saved at ``iteration``; RunError (one line) when there is
+  none."""
   try:
     restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", state_shapes(trainer, cfg),
-                                         fields)
+                                         fields, step=iteration)
   except checkpoint.CheckpointError as e:
     raise RunError(str(e)) from None
   if restored is None:
@@ -165,12 +167,14 @@ def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentC
   return restored
 
 
-def load_run(run_dir: str | os.PathLike) -> LoadedRun:
-  """Loads the latest checkpoint of a run that restores; RunError when there is none."""
+def load_run(run_dir: str | os.PathLike, iteration: int | None = None) -> LoadedRun:
+  """Loads the latest checkpoint of a run that restores (or the one saved at ``iteration``);
+  RunError when there is none."""
   cfg = load_config(run_dir)
   trainer = build_trainer(cfg)
   # A policy needs only params and normalizer: the env state's layout may have changed since.
-  restored = restore_run(run_dir, trainer, cfg, fields=checkpoint.POLICY_FIELDS)
+  restored = restore_run(run_dir, trainer, cfg, fields=checkpoint.POLICY_FIELDS,
+                         iteration=iteration)
   state = restored.state
   norm = state.normalizer if cfg.train.normalize_observations else None
   return LoadedRun(cfg, trainer, state.params, norm, int(restored.step))

@@ -111,6 +111,7 @@ def test_evaluate_writes_metrics_and_trajectories(smoke_run):
               "forward_speed", "command_vx"):
     assert key in metrics, key
   assert metrics["command_vx"] == pytest.approx(0.4)
+  assert metrics["iteration"] == 10  # the latest checkpoint
   assert 0.0 <= metrics["fall_rate"] <= 1.0
   traj = np.load(smoke_run / "eval" / "trajectories.npz")
   steps = 50
@@ -152,6 +153,23 @@ def test_evaluation_without_pushes_keeps_the_other_randomization():
       trained.randomization
   assert eval_dir_name(held) == "eval_push_interval_1s"
   assert eval_dir_name(evaluation.EvalConfig(push_interval_s=0.0)) == "eval_push_interval_0s"
+  # --iteration N: an earlier checkpoint's evaluation goes beside the latest one's.
+  assert eval_dir_name(evaluation.EvalConfig(), 600) == "eval_it600"
+  assert eval_dir_name(evaluation.EvalConfig(push_interval_s=0.0), 50) == \
+      "eval_push_interval_0s_it50"
+
+
+def test_evaluate_iteration_picks_that_checkpoint_or_names_the_saved_ones(smoke_run):
+  """--iteration N restores the checkpoint of iteration N; one not saved is one error line that
+  lists the saved iterations, and nothing is written."""
+  from mash import runs
+  assert runs.load_run(smoke_run, iteration=10).iteration == 10
+  with pytest.raises(runs.RunError, match=r"no checkpoint of step 7 .*steps 10\)"):
+    runs.load_run(smoke_run, iteration=7)
+  out = _cli("experiments.evaluate", "--run", str(smoke_run), "--iteration", "7")
+  lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
+  assert out.returncode == 2 and len(lines) == 1 and "step 7" in lines[0], out.stderr
+  assert not (smoke_run / "eval_it7").exists()
 
 
 def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -167,6 +185,7 @@ def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     (("experiments.bipedal", "--resume", "/nonexistent/run"), "does not exist"),
     (("experiments.evaluate", "--run", "/nonexistent/run"), "does not exist"),
     (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"), "--push-interval"),
+    (("experiments.evaluate", "--run", "r", "--iteration", "0"), "--iteration"),
 ])
 def test_cli_bad_input_is_one_line(args, words):
   """Bad input: exit status 2, one line on stderr naming the input, no traceback."""
