@@ -137,7 +137,8 @@ def main(argv=None) -> None:
     shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
                                     "fall_rate", "forward_speed", "command_vx")}
     print(json.dumps(shown, indent=2))
-    print(f"wrote {args.run}/{eval_dir_name(cfg, args.iteration)}/metrics.json, trajectories.npz, hip_pitch.png")
+    out = f"{args.run}/{eval_dir_name(cfg, args.iteration)}"
+    print(f"wrote {out}/metrics.json, trajectories.npz, hip_pitch.png")
 
 
 if __name__ == "__main__":

@@ -243,13 +243,14 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
                                 f"steps {', '.join(map(str, sorted(steps))) or 'none'})")
         steps = [step]
       first_error = None
-      for i, step in enumerate(steps):
+      for i, candidate in enumerate(steps):
         try:
-          return restore(manager, step, template_state, fields)._replace(skipped=tuple(steps[:i]))
+          return restore(manager, candidate, template_state,
+                         fields)._replace(skipped=tuple(steps[:i]))
         except Exception as e:  # noqa: BLE001 - whatever the cause, this step is unusable
           first_error = first_error or _one_line(e)
           if i + 1 < len(steps):  # when none restores, the CheckpointError alone says it all
-            print(f"warning: checkpoint step {step} in '{directory}' does not restore "
+            print(f"warning: checkpoint step {candidate} in '{directory}' does not restore "
                   f"({_one_line(e)}); trying step {steps[i + 1]}", file=sys.stderr, flush=True)
     finally:
       manager.close()
