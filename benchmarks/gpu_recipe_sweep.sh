@@ -50,7 +50,7 @@ done
 wait
 echo "== trained at $(( $(date +%s) - t0 ))s"
 for name in "${names[@]}"; do
-  echo "-- $name: $(grep -h 'finished\|stopped\|Error' "$WORK/logs/train_$name.log" | tail -n 1 | cut -c1-200)"
+  echo "-- $name: $(grep -h 'finished\|interrupted\|Error' "$WORK/logs/train_$name.log" | tail -n 1 | cut -c1-200)"
 done
 
 for name in "${names[@]}"; do
