@@ -8,7 +8,8 @@
 #      run saves a checkpoint and exits 143; it is then a prefix of the full curve);
 #   2. every variant's latest checkpoint, and those saved at EVAL_ITERS, is evaluated with
 #      EVAL_ARGS, all variants at once, each call under EVAL_S seconds.
-# Results go under WORK; $OUT/sweep_results.tar.gz packs them without checkpoints.
+# Results go under WORK; $OUT/sweep_results.tar.gz packs them without checkpoints, and
+# $OUT/checkpoints.tar.gz holds each variant's latest checkpoint.
 #
 #   OUT=/tmp/sweep TRAIN_S=400 VARIANTS='base|;sigma01|--set env.reward_params.tracking_sigma=0.1' \
 #     bash benchmarks/gpu_recipe_sweep.sh
@@ -71,4 +72,12 @@ for name in "${names[@]}"; do
   done
 done
 tar -czf "$OUT/sweep_results.tar.gz" -C "$WORK" --exclude='*/checkpoints' --exclude='*/trajectories.npz' .
+# Each variant's latest checkpoint too (small with checkpoint_env_state=false), so an evaluation
+# the time limit cut can be run on another machine.
+latest=()
+for name in "${names[@]}"; do
+  last=$(ls "$WORK/$name/checkpoints" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -n 1)
+  [ -n "$last" ] && latest+=("$name/checkpoints/$last" "$name/config.json")
+done
+[ ${#latest[@]} -gt 0 ] && tar -czf "$OUT/checkpoints.tar.gz" -C "$WORK" "${latest[@]}"
 ls -la "$OUT"
