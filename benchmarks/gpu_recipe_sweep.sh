@@ -27,16 +27,14 @@ WORK=${WORK:-$(mktemp -d)}
 export PYTHONUNBUFFERED=1 TQDM_MININTERVAL=${TQDM_MININTERVAL:-30}
 # Several processes share the GPU: none may take most of its memory up front.
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
-mkdir -p "$OUT" "$WORK/logs"
+# shellcheck source=benchmarks/gpu_lib.sh
+source "$(dirname "$0")/gpu_lib.sh"
+OUT=$(abs_dir "$OUT") && WORK=$(abs_dir "$WORK") || exit 1
+mkdir -p "$WORK/logs"
 cd "$(dirname "$0")/.."
 t0=$(date +%s)
 
-{
-  date -u +%Y-%m-%dT%H:%M:%SZ
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1
-  $PY -c "import sys, jax, mujoco; print(sys.version.split()[0], 'jax', jax.__version__, 'mujoco', mujoco.__version__, jax.devices())" 2>&1 | grep -v warp
-  git rev-parse --short HEAD 2>/dev/null
-} | tee "$WORK/logs/machine.txt"
+machine_info "$PY" | tee "$WORK/logs/machine.txt"
 
 names=()
 IFS=';' read -ra specs <<< "$VARIANTS"
@@ -76,7 +74,7 @@ tar -czf "$OUT/sweep_results.tar.gz" -C "$WORK" --exclude='*/checkpoints' --excl
 # the time limit cut can be run on another machine.
 latest=()
 for name in "${names[@]}"; do
-  last=$(ls "$WORK/$name/checkpoints" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -n 1)
+  last=$(latest_step "$WORK/$name")
   [ -n "$last" ] && latest+=("$name/checkpoints/$last" "$name/config.json")
 done
 [ ${#latest[@]} -gt 0 ] && tar -czf "$OUT/checkpoints.tar.gz" -C "$WORK" "${latest[@]}"

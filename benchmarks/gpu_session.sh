@@ -31,7 +31,10 @@ EVAL_ARGS=${EVAL_ARGS:-}
 export PYTHONUNBUFFERED=1 TQDM_MININTERVAL=${TQDM_MININTERVAL:-15}
 SIM2SIM_ARGS=${SIM2SIM_ARGS:---episodes 4}
 WORK=${WORK:-$(mktemp -d)}
-mkdir -p "$OUT" "$WORK/logs"
+# shellcheck source=benchmarks/gpu_lib.sh
+source "$(dirname "$0")/gpu_lib.sh"
+OUT=$(abs_dir "$OUT") && WORK=$(abs_dir "$WORK") || exit 1
+mkdir -p "$WORK/logs"
 t0=$(date +%s)
 elapsed() { echo $(( $(date +%s) - t0 )); }
 
@@ -47,12 +50,7 @@ stage() {
   tail -n 4 "$WORK/logs/$name.log" | cut -c1-300
 }
 
-{
-  date -u +%Y-%m-%dT%H:%M:%SZ
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1
-  $PY -c "import sys, jax, mujoco; print(sys.version.split()[0], 'jax', jax.__version__, 'mujoco', mujoco.__version__, jax.devices())" 2>&1 | grep -v warp
-  nproc
-} | tee "$WORK/logs/machine.txt"
+machine_info "$PY" | tee "$WORK/logs/machine.txt"
 
 cd "$(dirname "$0")/.."
 stage train "$TRAIN_S" $PY -m experiments.bipedal --preset "$PRESET" --out "$WORK/run" \
@@ -68,7 +66,7 @@ stage sweep "$SWEEP_S" $PY -m experiments.benchmark --sweep batch --batches "$BA
 cp "$WORK/logs/machine.txt" "$WORK/run/" 2>/dev/null
 tar -czf "$OUT/gpu_results.tar.gz" -C "$WORK" --exclude=run/checkpoints logs \
   $(cd "$WORK" && ls -d run benchmark.json scaling_batch.* 2>/dev/null)
-last=$(ls "$WORK/run/checkpoints" 2>/dev/null | grep -E '^[0-9]+$' | sort -n | tail -n 1)
+last=$(latest_step "$WORK/run")
 [ -n "$last" ] && tar -czf "$OUT/checkpoint.tar.gz" -C "$WORK" "run/checkpoints/$last"
 ls -la "$OUT"
 [ -f "$WORK/run/eval/metrics.json" ] && cat "$WORK/run/eval/metrics.json" | head -c 1500
