@@ -2,6 +2,8 @@
 
 Deterministic rollouts of the latest checkpoint at a fixed forward command (domain randomization
 on) -> ``DIR/eval/metrics.json``, ``DIR/eval/trajectories.npz`` and ``DIR/eval/hip_pitch.png``.
+``metrics.json`` also splits the falls by floor friction (``fall_rate_by_friction``), and the
+trajectories keep each episode's ``friction``.
 With ``--no-dr`` or ``--no-push`` the same files go to ``DIR/eval_no_dr/`` or ``DIR/eval_no_push/``,
 with ``--push-interval S`` to ``DIR/eval_push_interval_<S>s/``, so a diagnostic never replaces the
 evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
@@ -48,6 +50,9 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   result["iteration"] = run.iteration
   result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"]
                    for k in keys if per_seed[0][k] is not None}
+  merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
+  result["fall_rate_by_friction"] = evaluation.falls_by_friction(
+      merged["friction"], merged["alive"].min(axis=1) > 0)
   result["per_seed"] = per_seed
   result["eval_config"] = eval_cfg.__dict__
   result["smoothing_window"] = None
@@ -58,7 +63,6 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
     out = Path(run_dir) / eval_dir_name(eval_cfg, iteration)
     out.mkdir(exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
-    merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
     np.savez_compressed(out / "trajectories.npz", dt=trajs[0]["dt"], **merged)
     plot_hip_pitch(merged, float(trajs[0]["dt"]), out / "hip_pitch.png", cfg.algo)
   return result
@@ -137,6 +141,9 @@ def main(argv=None) -> None:
     shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
                                     "fall_rate", "forward_speed", "command_vx")}
     print(json.dumps(shown, indent=2))
+    bands = [f"{b['friction'][0]:g}-{b['friction'][1]:g}: {b['fall_rate']:.2f} of {b['episodes']}"
+             for b in result["fall_rate_by_friction"] if b["episodes"]]
+    print("fall rate by floor friction: " + ", ".join(bands))
     out = f"{args.run}/{eval_dir_name(cfg, args.iteration)}"
     print(f"wrote {out}/metrics.json, trajectories.npz, hip_pitch.png")
 

@@ -85,7 +85,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     ``actions [E,T,A]``, ``base_height [E,T]`` (torso above the soles, m), ``euler [E,T,3]``,
     ``hip_pitch [E,T,2]`` and ``hip_pitch_ref [E,T,2]`` (left, right; rad, absolute),
     ``forward_velocity [E,T]`` (torso frame, m/s), ``alive [E,T]`` (1 until the fall),
-    ``contact [E,T,2]``, ``dt`` (s).
+    ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
   """
   steps = int(round(cfg.episode_s / env.dt))
   hips = hip_pitch_index(env)
@@ -101,7 +101,8 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     contact, _ = env.contacts(nxt.pipeline_state)
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
                hip_pitch=s["q"][hips], hip_pitch_ref=(env._q_default + q_ref)[hips],
-               forward_velocity=s["lin_vel"][0], done=nxt.done, contact=contact)
+               forward_velocity=s["lin_vel"][0], done=nxt.done, contact=contact,
+               friction=nxt.info["dr"].friction)
     return (nxt, value), out
 
   def episode(key, value):
@@ -117,6 +118,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   traj = jax.device_get(jax.jit(jax.vmap(episode))(keys, values))
   traj = {k: np.asarray(v) for k, v in traj.items()}
   done = traj.pop("done")
+  traj["friction"] = traj["friction"][:, 0]
   traj["alive"] = (np.cumsum(done, axis=1) - done == 0).astype(np.float32)
   traj["dt"] = np.asarray(env.dt)
   return traj
@@ -177,13 +179,41 @@ def robustness(env_config: env_lib.EnvConfig, policy: Callable, frictions: np.nd
           "push": {"values": pushes, "fall_rate": fall[n:], "forward_speed": fwd[n:]}}
 
 
+# Bands of the floor friction for ``fall_rate_by_friction``, over the paper's range U[0.1, 1.2].
+FRICTION_BANDS = (0.1, 0.2, 0.3, 0.6, 0.9, 1.2)
+
+
+def falls_by_friction(friction: np.ndarray, survived: np.ndarray,
+                      edges: tuple[float, ...] = FRICTION_BANDS) -> list[dict[str, Any]]:
+  """Fall rate per band of floor friction: where a policy's falls come from.
+
+  Args:
+    friction: ``[E]`` each episode's floor-sole friction.
+    survived: ``[E]`` bool, the episode did not fall.
+    edges: band edges, increasing; a friction below the first edge counts in the first band, one
+      at or above the last in the last band.
+
+  Returns:
+    One ``{'friction': [lo, hi], 'episodes': n, 'fall_rate': share or None}`` per band.
+  """
+  friction, survived = np.asarray(friction).reshape(-1), np.asarray(survived, bool).reshape(-1)
+  band = np.clip(np.searchsorted(edges, friction, side="right") - 1, 0, len(edges) - 2)
+  out = []
+  for b in range(len(edges) - 1):
+    n = int((band == b).sum())
+    falls = float(1.0 - survived[band == b].mean()) if n else None
+    out.append({"friction": [edges[b], edges[b + 1]], "episodes": n, "fall_rate": falls})
+  return out
+
+
 def evaluate(traj: dict[str, np.ndarray], command_vx: float,
              rewards_per_iteration: np.ndarray | None = None) -> dict[str, Any]:
   """The SPEC §8 metrics of a rollout.
 
   Smoothness, torso and coordination metrics use the episodes that did not fall (all episodes if
   every one fell, flagged by ``metrics_on_fallen``). ``fall_rate`` is the share of episodes that
-  fell; ``forward_speed`` the mean torso-frame forward velocity over the steps alive.
+  fell; ``forward_speed`` the mean torso-frame forward velocity over the steps alive;
+  ``fall_rate_by_friction`` (when ``traj`` has ``friction``) splits the falls by floor friction.
   """
   alive = traj["alive"]
   survived = alive.min(axis=1) > 0
@@ -198,4 +228,6 @@ def evaluate(traj: dict[str, np.ndarray], command_vx: float,
       episodes=int(len(survived)),
       metrics_on_fallen=bool(not survived.any()),
   )
+  if "friction" in traj:
+    out["fall_rate_by_friction"] = falls_by_friction(traj["friction"], survived)
   return out

@@ -121,12 +121,35 @@ def test_evaluate_writes_metrics_and_trajectories(smoke_run):
   assert traj["hip_pitch"].shape == (3, steps, 2)
   assert float(traj["dt"]) == pytest.approx(0.02)
   assert (smoke_run / "eval" / "hip_pitch.png").is_file()
+  # Each episode's floor friction, drawn from the paper's range, and the falls split by it.
+  assert traj["friction"].shape == (3,)
+  assert np.all((traj["friction"] >= 0.1) & (traj["friction"] <= 1.2))
+  bands = metrics["fall_rate_by_friction"]
+  assert sum(b["episodes"] for b in bands) == 3
+  falls = sum(b["fall_rate"] * b["episodes"] for b in bands if b["episodes"])
+  assert falls == pytest.approx(3 * metrics["fall_rate"])
   # The metrics are recomputable from the file.
   from mash import metrics as metrics_lib
   alive = traj["alive"].min(axis=1) > 0
   pick = alive if alive.any() else np.ones_like(alive)
   assert metrics_lib.action_smoothness(traj["actions"][pick]) == pytest.approx(
       result["S_action"], rel=1e-5)
+
+
+def test_falls_by_friction_against_a_hand_count():
+  """Episodes binned by floor friction, out-of-range values into the end bands, empty bands None."""
+  from mash import evaluation
+  friction = np.array([0.05, 0.1, 0.2, 0.29, 0.3, 0.95, 1.2, 1.5])
+  survived = np.array([False, True, False, False, True, True, False, True])
+  bands = evaluation.falls_by_friction(friction, survived, edges=(0.1, 0.3, 0.6, 0.9, 1.2))
+  assert [b["friction"] for b in bands] == [[0.1, 0.3], [0.3, 0.6], [0.6, 0.9], [0.9, 1.2]]
+  assert [b["episodes"] for b in bands] == [4, 1, 0, 3]
+  assert bands[0]["fall_rate"] == pytest.approx(0.75)  # 0.05, 0.2, 0.29 fell; 0.1 stood
+  assert bands[1]["fall_rate"] == 0.0
+  assert bands[2]["fall_rate"] is None
+  assert bands[3]["fall_rate"] == pytest.approx(1 / 3)  # 1.2 fell; 0.95 and 1.5 stood
+  default = evaluation.falls_by_friction(friction, survived)
+  assert [b["episodes"] for b in default] == [2, 2, 1, 0, 3]
 
 
 def test_evaluation_without_pushes_keeps_the_other_randomization():
