@@ -30,6 +30,8 @@ class EvalConfig:
     push_interval_s: how long each push is held (s; 0: a new push every control step); None keeps
       the run's own (``DomainRandConfig.push_interval_s``), e.g. 1.0 to test a per-step-trained
       policy against held pushes, or 0 to evaluate an older held-push run as runs now train.
+    friction: floor-friction range ``(lo, hi)`` drawn from instead of the run's own; None keeps
+      the run's. E.g. (0.1, 1.2), the paper's, for a run trained on a narrower range.
     seed: rollout seed.
   """
 
@@ -39,6 +41,7 @@ class EvalConfig:
   randomization: bool = True
   pushes: bool = True
   push_interval_s: float | None = None
+  friction: tuple[float, float] | None = None
   seed: int = 1234
 
 
@@ -54,6 +57,8 @@ def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.E
                                         push_torque=(0.0, 0.0))
   if cfg.push_interval_s is not None:
     randomization = dataclasses.replace(randomization, push_interval_s=cfg.push_interval_s)
+  if cfg.friction is not None:
+    randomization = dataclasses.replace(randomization, friction=tuple(cfg.friction))
   return dataclasses.replace(env_config, commands=commands, randomization=randomization,
                              episode_length=steps + 1, auto_reset=False)
 

@@ -180,6 +180,22 @@ def test_evaluation_without_pushes_keeps_the_other_randomization():
   assert eval_dir_name(evaluation.EvalConfig(), 600) == "eval_it600"
   assert eval_dir_name(evaluation.EvalConfig(push_interval_s=0.0), 50) == \
       "eval_push_interval_0s_it50"
+  # --friction LO HI: only the floor-friction range changes (e.g. the paper's, for a run trained
+  # on a narrower one), and the directory says so.
+  narrow = dataclasses.replace(trained, randomization=dataclasses.replace(
+      trained.randomization, friction=(0.1, 0.3)))
+  paper = evaluation.EvalConfig(push_interval_s=0.0, friction=(0.1, 1.2))
+  r = evaluation.eval_env_config(narrow, paper).randomization
+  assert r == dataclasses.replace(narrow.randomization, push_interval_s=0.0, friction=(0.1, 1.2))
+  assert eval_dir_name(paper, 1000) == "eval_push_interval_0s_friction_0.1-1.2_it1000"
+  assert eval_dir_name(evaluation.EvalConfig(friction=(0.1, 0.6))) == "eval_friction_0.1-0.6"
+
+
+def test_evaluate_rejects_a_bad_friction_range(tmp_path):
+  """--friction HI < LO is one error line naming the option, before any run is read."""
+  out = _cli("experiments.evaluate", "--run", str(tmp_path), "--friction", "0.6", "0.1")
+  lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
+  assert out.returncode == 2 and len(lines) == 1 and "--friction" in lines[0], out.stderr
 
 
 def test_evaluate_iteration_picks_that_checkpoint_or_names_the_saved_ones(smoke_run):
