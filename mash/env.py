@@ -173,6 +173,14 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   if params.penalty_ramp_steps < 0:
     raise ValueError("reward_params.penalty_ramp_steps must be >= 0 (0 = no curriculum), got "
                      f"{params.penalty_ramp_steps}")
+  dr = config.randomization
+  if dr.friction_ramp_steps < 0:
+    raise ValueError("randomization.friction_ramp_steps must be >= 0 (0 = no curriculum), got "
+                     f"{dr.friction_ramp_steps}")
+  for name in ("friction", "friction_initial"):
+    r = getattr(dr, name)
+    if r is not None and not (len(r) == 2 and 0.0 < r[0] <= r[1]):
+      raise ValueError(f"randomization.{name} must be a range (lo, hi) with 0 < lo <= hi, got {r}")
 
 
 class MashEnv(brax_base.Env):
@@ -362,8 +370,13 @@ class MashEnv(brax_base.Env):
 
   # --------------------------------------------------------------------------------- reset/step
   def reset(self, rng: jax.Array) -> State:
+    return self._reset(rng, jnp.zeros((), jnp.int32))
+
+  def _reset(self, rng: jax.Array, env_steps: jax.Array) -> State:
+    """A fresh episode in an env slot that has run ``env_steps`` control steps (curricula)."""
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
-    dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints)
+    dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints,
+                          env_steps)
     data = mjx.make_data(self.mjx_model, impl="jax", device=jax.local_devices()[0])
     data = data.replace(qpos=self._home_qpos)
     command = self._sample_command(k_cmd)
@@ -371,7 +384,7 @@ class MashEnv(brax_base.Env):
     info: dict[str, Any] = {
         "rng": rng,
         "step": jnp.zeros((), jnp.int32),
-        "env_steps": jnp.zeros((), jnp.int32),
+        "env_steps": env_steps,
         "command": command,
         "phase": jax.random.uniform(k_phase) * (1.0 - command[0]),
         "last_action": a0, "last_last_action": a0,
@@ -544,10 +557,9 @@ class MashEnv(brax_base.Env):
                        info=info)
     if not cfg.auto_reset:
       return next_state
-    fresh = self.reset(k_reset)
+    fresh = self._reset(k_reset, info["env_steps"])
     fresh.info.update(truncation=info["truncation"], fall=info["fall"],
-                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"],
-                      env_steps=info["env_steps"])
+                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
     pick = lambda new, old: jnp.where(done > 0, new, old)
     return next_state.replace(
         pipeline_state=jax.tree.map(pick, fresh.pipeline_state, data),

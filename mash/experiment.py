@@ -199,6 +199,21 @@ def _coerce(text: str, like: Any, path: str) -> Any:
                       f"like {like!r}") from None
 
 
+def _coerce_field(text: str, obj: Any, name: str, path: str) -> Any:
+  """Parses ``text`` for field ``name`` of ``obj``: as the type of its current value, or for an
+  ``X | None`` field, ``none`` as None and anything else as an ``X``."""
+  current = getattr(obj, name)
+  kinds = typing.get_args(typing.get_type_hints(type(obj))[name])
+  if type(None) in kinds:
+    if text.lower() == "none":
+      return None
+    if current is None:
+      kind = next(k for k in kinds if k is not type(None))
+      current = {tuple: (0.0,), float: 0.0, int: 0, bool: False}.get(
+          typing.get_origin(kind) or kind, "")
+  return _coerce(text, current, path)
+
+
 def apply_overrides(cfg: Any, overrides: Sequence[str]) -> Any:
   """Applies ``path=value`` strings to nested frozen dataclasses."""
   for item in overrides:
@@ -222,7 +237,7 @@ def _replace_path(obj: Any, keys: list[str], text: str, path: str) -> Any:
   if len(keys) == 1:
     if dataclasses.is_dataclass(current):
       raise ConfigError(f"override '{path}': '{keys[0]}' is a section; name one of its fields")
-    value = _coerce(text, current, path)
+    value = _coerce_field(text, obj, keys[0], path)
   else:
     value = _replace_path(current, keys[1:], text, path)
   return dataclasses.replace(obj, **{keys[0]: value})

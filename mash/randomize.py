@@ -40,6 +40,12 @@ class DomainRandConfig:
     armature: per-joint reflected rotor inertia (kg m^2).
     kp_scale: per-joint multiplier of the PD stiffness.
     kd_scale: per-joint multiplier of the PD damping.
+    friction_initial: a curriculum on the floor friction (ours; the paper has none): the range
+      ``(lo, hi)`` drawn from at the start of training, moving linearly to ``friction`` over
+      ``friction_ramp_steps`` control steps of each env slot (as the penalty curriculum,
+      ``RewardParams.penalty_ramp_steps``). None: no curriculum.
+    friction_ramp_steps: length of that curriculum (control steps); 0: ``friction`` throughout.
+      Evaluation always draws from ``friction``, the range training ends on.
   """
 
   enabled: bool = True
@@ -56,6 +62,8 @@ class DomainRandConfig:
   armature: tuple[float, float] = (0.005, 0.015)
   kp_scale: tuple[float, float] = (0.95, 1.05)
   kd_scale: tuple[float, float] = (0.95, 1.05)
+  friction_initial: tuple[float, float] | None = None
+  friction_ramp_steps: int = 0
 
 
 @struct.dataclass
@@ -92,14 +100,31 @@ def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
       joint_friction=0.0 * ones, armature=nominal_armature * ones, kp_scale=ones, kd_scale=ones)
 
 
-def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int) -> DomainParams:
-  """Draws one environment's parameters (nominal when ``config.enabled`` is False)."""
+def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
+                   ) -> tuple[jax.Array, jax.Array] | tuple[float, float]:
+  """The floor-friction range ``(lo, hi)`` in force after ``env_steps`` control steps of an env slot:
+  ``config.friction`` unless the curriculum (``friction_initial``, ``friction_ramp_steps``) is on,
+  and then the linear blend from ``friction_initial`` to ``friction`` (``[]`` arrays each)."""
+  if config.friction_initial is None or config.friction_ramp_steps <= 0 or env_steps is None:
+    return config.friction
+  done = jnp.clip(jnp.asarray(env_steps, jnp.float32) / config.friction_ramp_steps, 0.0, 1.0)
+  (lo0, hi0), (lo1, hi1) = config.friction_initial, config.friction
+  return lo0 + done * (lo1 - lo0), hi0 + done * (hi1 - hi0)
+
+
+def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
+           env_steps: jax.Array | None = None) -> DomainParams:
+  """Draws one environment's parameters (nominal when ``config.enabled`` is False).
+
+  ``env_steps`` ([] int, control steps of this env slot since training began) places the floor
+  friction's draw on its curriculum (:func:`friction_range`); None: the final range.
+  """
   if not config.enabled:
     return nominal(nbody, n_joints)
   k = jax.random.split(key, 9)
   u = lambda key, r, shape=(): jax.random.uniform(key, shape, minval=r[0], maxval=r[1])
   return DomainParams(
-      friction=u(k[0], config.friction), mass_scale=u(k[1], config.mass_scale, (nbody,)),
+      friction=u(k[0], friction_range(config, env_steps)), mass_scale=u(k[1], config.mass_scale, (nbody,)),
       com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
       joint_damping=u(k[4], config.joint_damping, (n_joints,)),
       joint_friction=u(k[5], config.joint_friction, (n_joints,)),

@@ -1,11 +1,14 @@
 """Tests for mash.env, mash.randomize and the T1 robot spec.
 
 Most tests call pure functions (``pd_torque``, ``quat_to_euler``, ``MashEnv.observe`` on hand-built
-sensor dicts, ``randomize.sample`` / ``apply``): no MJX step, so nothing slow to compile. Only two
-MJX programs are compiled, once each (session fixtures): a batched reset + scanned rollout of the
-bipedal env with domain randomization on (short episodes, to see time-outs and auto-resets), and
-the same for the nominal robot (DR off) for the standing test.
+sensor dicts, ``randomize.sample`` / ``apply``): no MJX step, so nothing slow to compile. Three
+MJX programs are compiled, once each: a batched reset + scanned rollout of the bipedal env with
+domain randomization on (short episodes, to see time-outs and auto-resets), the same for the
+nominal robot (DR off) for the standing test (both session fixtures), and one batched step of
+1-step episodes for the friction curriculum's test.
 """
+
+import dataclasses
 
 import chex
 import jax
@@ -16,6 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mash import env as env_lib
+from mash import evaluation
 from mash import randomize
 from mash import rewards
 from mash import robots
@@ -341,6 +345,44 @@ def test_randomize_sample_in_ranges_and_varies():
     assert len(np.unique(v.reshape(n, -1), axis=0)) > 0.95 * n, f"{field} repeats across envs"
   rows = np.concatenate([np.asarray(x).reshape(n, -1) for x in jax.tree.leaves(params)], axis=1)
   assert len(np.unique(rows, axis=0)) == n  # no two envs get the same robot
+
+
+def test_friction_curriculum_range_hand_values():
+  """friction_range blends linearly from friction_initial to friction over friction_ramp_steps,
+  then holds; off (None start or 0 steps) it is the final range; evaluation never ramps."""
+  cfg = randomize.DomainRandConfig(friction=(0.1, 1.2), friction_initial=(0.3, 0.5),
+                                   friction_ramp_steps=1000)
+  for steps, want in ((0, (0.3, 0.5)), (250, (0.25, 0.675)), (1000, (0.1, 1.2)),
+                      (5000, (0.1, 1.2))):
+    np.testing.assert_allclose(randomize.friction_range(cfg, jnp.int32(steps)), want, rtol=1e-6)
+  assert randomize.friction_range(cfg, None) == (0.1, 1.2)
+  off = (dataclasses.replace(cfg, friction_ramp_steps=0),
+         dataclasses.replace(cfg, friction_initial=None))
+  assert all(randomize.friction_range(c, jnp.int32(0)) == (0.1, 1.2) for c in off)
+  env_cfg = env_lib.EnvConfig(randomization=cfg)
+  assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
+                                    ).randomization.friction_ramp_steps == 0
+
+
+def test_friction_curriculum_follows_each_env_slot_through_resets():
+  """Fresh episodes (first reset and every auto-reset) draw the floor friction from the range of
+  the curriculum at that slot's env step count: U[0.1, 0.2] at 0, U[0.1, 0.7] half-way,
+  U[0.1, 1.2] at the end (1-step episodes, so every step resets)."""
+  cfg = randomize.DomainRandConfig(friction_initial=(0.1, 0.2), friction_ramp_steps=100)
+  env = env_lib.make_env("bipedal", "mash", randomization=cfg, episode_length=1)
+  b = 32
+  state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(5), b))
+  step = jax.jit(jax.vmap(env.step))
+  frictions = [np.asarray(state.info["dr"].friction)]
+  for before in (49, 99):
+    state.info["env_steps"] = jnp.full((b,), before, jnp.int32)
+    nxt = step(state, jnp.zeros((b, env.action_size)))
+    np.testing.assert_array_equal(nxt.done, 1.0)
+    np.testing.assert_array_equal(nxt.info["env_steps"], before + 1)
+    frictions.append(np.asarray(nxt.info["dr"].friction))
+  for f, hi in zip(frictions, (0.2, 0.7, 1.2)):
+    assert f.min() >= 0.1 and f.max() <= hi + 1e-6
+    assert f.max() > hi - 0.4 * (hi - 0.1), "draws do not fill the curriculum's range"
 
 
 def test_randomize_disabled_is_nominal():

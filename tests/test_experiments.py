@@ -59,7 +59,12 @@ def test_overrides_apply_and_reject():
   assert cfg.train.learning_rate == 5e-4 and cfg.env.reward_scales.joint_pos == 2.0
   assert cfg.env.agent_id is False and cfg.train.actor_hidden == (32, 16)
   assert cfg.env.partition == "ppo"
-  bad = [["train.nope=1"], ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
+  # A field that may be None (the friction curriculum's start) parses as its type, and back.
+  cfg = experiment.apply_overrides(cfg, ["env.randomization.friction_initial=[0.1,0.3]"])
+  assert cfg.env.randomization.friction_initial == (0.1, 0.3)
+  assert experiment.apply_overrides(cfg, ["env.randomization.friction_initial=none"]
+                                    ).env.randomization.friction_initial is None
+  bad = [["train.nope=1"], ["env.randomization.friction_initial=ice"], ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
   for overrides in bad:
     with pytest.raises(experiment.ConfigError):
       experiment.make_config("bipedal", "mash", "smoke", overrides=overrides)
