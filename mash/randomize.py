@@ -102,7 +102,7 @@ def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
 
 def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
                    ) -> tuple[jax.Array, jax.Array] | tuple[float, float]:
-  """The floor-friction range ``(lo, hi)`` in force after ``env_steps`` control steps of an env slot:
+  """The floor-friction range ``(lo, hi)`` after ``env_steps`` control steps of an env slot:
   ``config.friction`` unless the curriculum (``friction_initial``, ``friction_ramp_steps``) is on,
   and then the linear blend from ``friction_initial`` to ``friction`` (``[]`` arrays each)."""
   if config.friction_initial is None or config.friction_ramp_steps <= 0 or env_steps is None:
@@ -124,7 +124,8 @@ def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
   k = jax.random.split(key, 9)
   u = lambda key, r, shape=(): jax.random.uniform(key, shape, minval=r[0], maxval=r[1])
   return DomainParams(
-      friction=u(k[0], friction_range(config, env_steps)), mass_scale=u(k[1], config.mass_scale, (nbody,)),
+      friction=u(k[0], friction_range(config, env_steps)),
+      mass_scale=u(k[1], config.mass_scale, (nbody,)),
       com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
       joint_damping=u(k[4], config.joint_damping, (n_joints,)),
       joint_friction=u(k[5], config.joint_friction, (n_joints,)),

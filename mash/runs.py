@@ -108,7 +108,9 @@ def init_state(trainer, cfg: experiment.ExperimentConfig, salt: int = 0):
 def with_fresh_episodes(trainer, cfg: experiment.ExperimentConfig, state, iteration: int):
   """``state`` (restored without env states) with every env on a fresh episode, drawn with keys
   of ``iteration``: running episode returns and lengths restart at zero, and the envs' curriculum
-  clock (``info['env_steps']``) reads ``iteration * unroll_length``, as it would have."""
+  clock (``info['env_steps']``) reads ``iteration * unroll_length``, as it would have. (These first
+  fresh episodes draw their floor friction before the clock is set: under the friction curriculum,
+  from its initial range; every later episode of a slot follows the clock.)"""
   fresh = init_state(trainer, cfg, salt=iteration + 1)
   env_state = fresh.env_state
   if "env_steps" in env_state.info:
