@@ -64,7 +64,8 @@ def test_overrides_apply_and_reject():
   assert cfg.env.randomization.friction_initial == (0.1, 0.3)
   assert experiment.apply_overrides(cfg, ["env.randomization.friction_initial=none"]
                                     ).env.randomization.friction_initial is None
-  bad = [["train.nope=1"], ["env.randomization.friction_initial=ice"], ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
+  bad = [["train.nope=1"], ["env.randomization.friction_initial=ice"],
+         ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
   for overrides in bad:
     with pytest.raises(experiment.ConfigError):
       experiment.make_config("bipedal", "mash", "smoke", overrides=overrides)
