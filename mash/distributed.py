@@ -213,14 +213,15 @@ class DistributedTrainer(NamedTuple):
   """A trainer over a global mesh.
 
   Attributes:
-    init: ``key -> TrainState`` as global arrays (every process passes the same key).
+    init: ``(key, env_steps=None) -> TrainState`` as global arrays (every process passes the same
+      key; ``env_steps`` as :func:`mash.train.make_train`'s ``init``).
     train_epoch: jitted ``state -> (state, metrics)`` (state donated; metrics replicated,
       ``[iterations_per_call]``; read them with :func:`gather_to_host`).
     trainer: the underlying unsharded :class:`mash.train.Trainer` (networks, env, config).
     mesh: the mesh.
   """
 
-  init: Callable[[jax.Array], train_lib.TrainState]
+  init: Callable[..., train_lib.TrainState]
   train_epoch: Callable[[train_lib.TrainState], tuple[train_lib.TrainState, train_lib.Metrics]]
   trainer: train_lib.Trainer
   mesh: jax.sharding.Mesh
@@ -255,7 +256,7 @@ def make_distributed_trainer(config: TrainConfig, env: train_lib.MultiAgentEnv,
   trainer = train_lib.make_train(config, env, compiler_options=compiler_options)
   train_epoch = train_lib.make_sharded_train_epoch(trainer, mesh, axis_name)
 
-  def init(key: jax.Array) -> train_lib.TrainState:
-    return shard_global_state(trainer.init(key), mesh, axis_name)
+  def init(key: jax.Array, env_steps: jax.Array | int | None = None) -> train_lib.TrainState:
+    return shard_global_state(trainer.init(key, env_steps), mesh, axis_name)
 
   return DistributedTrainer(init=init, train_epoch=train_epoch, trainer=trainer, mesh=mesh)

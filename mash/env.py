@@ -369,11 +369,10 @@ class MashEnv(brax_base.Env):
     return self._q_default.at[self._ctrl].add(scaled)
 
   # --------------------------------------------------------------------------------- reset/step
-  def reset(self, rng: jax.Array) -> State:
-    return self._reset(rng, jnp.zeros((), jnp.int32))
-
-  def _reset(self, rng: jax.Array, env_steps: jax.Array) -> State:
-    """A fresh episode in an env slot that has run ``env_steps`` control steps (curricula)."""
+  def reset(self, rng: jax.Array, env_steps: jax.Array | int = 0) -> State:
+    """A fresh episode in an env slot that has run ``env_steps`` control steps (``[]`` int; the
+    curricula's clock, e.g. the friction range it draws from; 0 for a fresh run)."""
+    env_steps = jnp.asarray(env_steps, jnp.int32)
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
     dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints,
                           env_steps)
@@ -557,7 +556,7 @@ class MashEnv(brax_base.Env):
                        info=info)
     if not cfg.auto_reset:
       return next_state
-    fresh = self._reset(k_reset, info["env_steps"])
+    fresh = self.reset(k_reset, info["env_steps"])
     fresh.info.update(truncation=info["truncation"], fall=info["fall"],
                       nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
     pick = lambda new, old: jnp.where(done > 0, new, old)

@@ -94,32 +94,26 @@ def _is_mesh(trainer) -> bool:
   return isinstance(trainer, distributed.DistributedTrainer)
 
 
-def init_state(trainer, cfg: experiment.ExperimentConfig, salt: int = 0):
+def init_state(trainer, cfg: experiment.ExperimentConfig, salt: int = 0,
+               env_steps: int | None = None):
   """A fresh train state from the config's seed(s); a non-zero ``salt`` is folded into every key
-  (fresh env states for a resume from a checkpoint without them)."""
+  (fresh env states for a resume from a checkpoint without them); ``env_steps``: the envs'
+  curriculum clock at their first episodes (``None``: a fresh run's)."""
   fold = (lambda key: jax.random.fold_in(key, salt)) if salt else (lambda key: key)
-  if _is_mesh(trainer):
-    return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)))
-  if cfg.seeds > 1:
-    return trainer.init(jax.vmap(fold)(train_lib.seed_keys(cfg.train.seed, cfg.seeds)))
-  return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)))
+  if cfg.seeds > 1 and not _is_mesh(trainer):
+    return trainer.init(jax.vmap(fold)(train_lib.seed_keys(cfg.train.seed, cfg.seeds)), env_steps)
+  return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)), env_steps)
 
 
 def with_fresh_episodes(trainer, cfg: experiment.ExperimentConfig, state, iteration: int):
   """``state`` (restored without env states) with every env on a fresh episode, drawn with keys
-  of ``iteration``: running episode returns and lengths restart at zero, and the envs' curriculum
-  clock (``info['env_steps']``) reads ``iteration * unroll_length``, as it would have. (These first
-  fresh episodes draw their floor friction before the clock is set: under the friction curriculum,
-  from its initial range; every later episode of a slot follows the clock.)"""
-  fresh = init_state(trainer, cfg, salt=iteration + 1)
-  env_state = fresh.env_state
-  if "env_steps" in env_state.info:
-    info = dict(env_state.info)
-    info["env_steps"] = info["env_steps"] + iteration * cfg.train.unroll_length
-    env_state = env_state.replace(info=info)
+  of ``iteration`` and the curriculum clock (``info['env_steps']``) at ``iteration *
+  unroll_length``, as it would have read: running episode returns and lengths restart at zero."""
+  fresh = init_state(trainer, cfg, salt=iteration + 1,
+                     env_steps=iteration * cfg.train.unroll_length)
   episodes = state.episodes.replace(running_return=fresh.episodes.running_return,
                                     running_length=fresh.episodes.running_length)
-  return state.replace(env_state=env_state, episodes=episodes)
+  return state.replace(env_state=fresh.env_state, episodes=episodes)
 
 
 def state_shapes(trainer, cfg: experiment.ExperimentConfig):

@@ -66,6 +66,8 @@ class MultiAgentEnv(Protocol):
   critic_obs_size: int
 
   def reset(self, key: jax.Array) -> Any:
+    """A fresh episode. Envs with curricula may take a second argument, the slot's control-step
+    count so far (the trainer passes it only when asked to: ``init(key, env_steps)``)."""
     ...
 
   def step(self, state: Any, action: jax.Array) -> Any:
@@ -178,7 +180,8 @@ class Trainer(NamedTuple):
     optimizer: the optax transformation.
     axis_name: mesh axis the update is averaged over, or ``None``.
     compiler_options: XLA options every jitted function is compiled with (``None``: defaults).
-    init_fn: ``key -> TrainState`` (pure, unjitted: for nesting in other transformations).
+    init_fn: ``(key, env_steps=None) -> TrainState`` (pure, unjitted: for nesting in other
+      transformations).
     init: ``init_fn`` jitted.
     iteration: ``TrainState -> (TrainState, metrics)``: one training iteration (pure).
     update: ``(OptimizerState, normalizer, flat LossBatch [T*B, ...], key) -> (OptimizerState,
@@ -195,8 +198,8 @@ class Trainer(NamedTuple):
   optimizer: optax.GradientTransformation
   axis_name: str | None
   compiler_options: Mapping[str, Any] | None
-  init_fn: Callable[[jax.Array], TrainState]
-  init: Callable[[jax.Array], TrainState]
+  init_fn: Callable[..., TrainState]
+  init: Callable[..., TrainState]
   iteration: Callable[[TrainState], tuple[TrainState, Metrics]]
   update: Callable[..., tuple[OptimizerState, Metrics]]
   train_epoch_fn: Callable[[TrainState], tuple[TrainState, Metrics]]
@@ -290,11 +293,17 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
   batch_reset = jax.vmap(env.reset)
   batch_step = jax.vmap(env.step)
 
-  def init(key: jax.Array) -> TrainState:
-    """Fresh parameters, optimizer and statistics, and ``num_envs`` reset environments."""
+  def init(key: jax.Array, env_steps: jax.Array | int | None = None) -> TrainState:
+    """Fresh parameters, optimizer and statistics, and ``num_envs`` reset environments; with
+    ``env_steps`` (``[]``), their episodes start as if each env had run that many control steps
+    (the curricula's clock, for a resume without saved env states)."""
     param_key, env_key, rng = jax.random.split(key, 3)
     params = networks.init(param_key)
-    env_state = batch_reset(jax.random.split(env_key, config.num_envs))
+    env_keys = jax.random.split(env_key, config.num_envs)
+    if env_steps is None:
+      env_state = batch_reset(env_keys)
+    else:
+      env_state = jax.vmap(env.reset, in_axes=(0, None))(env_keys, env_steps)
     zeros = jnp.zeros((config.num_envs,), jnp.float32)
     episodes = EpisodeStats(running_return=zeros, running_length=zeros,
                             last_return=jnp.zeros((), jnp.float32),
@@ -469,12 +478,12 @@ def make_seed_trainer(trainer: Trainer) -> Trainer:
     raise ValueError('make_seed_trainer expects a trainer built without axis_name.')
   epoch_fn = jax.vmap(trainer.train_epoch_fn)
 
-  def init(keys: jax.Array) -> TrainState:
+  def init(keys: jax.Array, env_steps: jax.Array | int | None = None) -> TrainState:
     if isinstance(keys, jax.core.Tracer):  # traced (eval_shape, an enclosing jit): plain vmap
-      return jax.vmap(trainer.init_fn)(keys)
+      return jax.vmap(trainer.init_fn, in_axes=(0, None))(keys, env_steps)
     # One single-seed init per key, stacked: reuses the single-seed program (no extra compile)
     # and makes seed i bit-identical to a run started with trainer.init(keys[i]).
-    states = [trainer.init(k) for k in keys]
+    states = [trainer.init(k, env_steps) for k in keys]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
 
   return trainer._replace(init=init,

@@ -365,15 +365,20 @@ def test_friction_curriculum_range_hand_values():
 
 
 def test_friction_curriculum_follows_each_env_slot_through_resets():
-  """Fresh episodes (first reset and every auto-reset) draw the floor friction from the range of
-  the curriculum at that slot's env step count: U[0.1, 0.2] at 0, U[0.1, 0.7] half-way,
-  U[0.1, 1.2] at the end (1-step episodes, so every step resets)."""
+  """Fresh episodes (every auto-reset, and a reset told the clock) draw the floor friction from
+  the range of the curriculum at that slot's env step count: U[0.1, 0.2] at 0, U[0.1, 0.7]
+  half-way, U[0.1, 1.2] at the end (1-step episodes, so every step resets)."""
   cfg = randomize.DomainRandConfig(friction_initial=(0.1, 0.2), friction_ramp_steps=100)
   env = env_lib.make_env("bipedal", "mash", randomization=cfg, episode_length=1)
   b = 32
-  state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(5), b))
+  reset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+  state = reset(jax.random.split(jax.random.key(5), b), 0)
   step = jax.jit(jax.vmap(env.step))
   frictions = [np.asarray(state.info["dr"].friction)]
+  resumed = reset(jax.random.split(jax.random.key(6), b), 50)  # a resume's first episodes
+  np.testing.assert_array_equal(resumed.info["env_steps"], 50)
+  f = np.asarray(resumed.info["dr"].friction)
+  assert f.max() <= 0.7 + 1e-6 and f.max() > 0.5, f
   for before in (49, 99):
     state.info["env_steps"] = jnp.full((b,), before, jnp.int32)
     nxt = step(state, jnp.zeros((b, env.action_size)))
