@@ -8,7 +8,8 @@ With ``--no-dr`` or ``--no-push`` the same files go to ``DIR/eval_no_dr/`` or ``
 with ``--push-interval S`` to ``DIR/eval_push_interval_<S>s/`` (``--friction LO HI``, another
 floor-friction range, appends ``_friction_<LO>-<HI>``), so a diagnostic never replaces the
 evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
-the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name.
+the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name;
+``--seed S`` draws other episodes (floors, robots, pushes) and appends ``_seed<S>``.
 """
 
 from __future__ import annotations
@@ -72,8 +73,11 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
 def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
   """``eval`` for the evaluation of the latest checkpoint with every randomized parameter on as
   trained, else the diagnostic's name; ``_friction_<lo>-<hi>`` appended for another friction
-  range, then ``_it<N>`` for the checkpoint of iteration N."""
+  range, ``_seed<S>`` for another rollout seed than the default, then ``_it<N>`` for the
+  checkpoint of iteration N."""
   suffix = "" if iteration is None else f"_it{iteration}"
+  if eval_cfg.seed != type(eval_cfg).seed:
+    suffix = f"_seed{eval_cfg.seed}" + suffix
   if not eval_cfg.randomization:
     return "eval_no_dr" + suffix
   if eval_cfg.friction is not None:
@@ -126,6 +130,11 @@ def main(argv=None) -> None:
                  help="draw the floor friction from U[LO, HI] instead of the run's own range, e.g. "
                       "0.1 1.2 (the paper's) for a run trained on a narrower one (appends "
                       "_friction_<LO>-<HI> to the output directory)")
+  p.add_argument("--seed", type=int, default=None, metavar="S",
+                 help="rollout seed: the floors, robots, pushes and start phases drawn (default: "
+                      "the evaluation's fixed seed; another one appends _seed<S> to the output "
+                      "directory, e.g. to confirm on fresh episodes a checkpoint picked among "
+                      "several)")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
@@ -136,19 +145,24 @@ def main(argv=None) -> None:
     if args.push_interval is not None and (args.push_interval < 0 or args.no_dr or args.no_push):
       raise common.UserError("--push-interval takes seconds >= 0 and needs the pushes on "
                              "(not with --no-dr or --no-push)")
+    if args.seed is not None and args.seed < 0:
+      raise common.UserError(f"--seed must be >= 0, got {args.seed}")
     if args.friction is not None and (args.no_dr or not 0 < args.friction[0] <= args.friction[1]):
       raise common.UserError(f"--friction takes LO HI with 0 < LO <= HI and needs DR on (not with "
                              f"--no-dr), got {args.friction}")
     cfg = evaluation.EvalConfig(command_vx=args.command_vx, num_episodes=args.episodes,
                                 episode_s=args.seconds, randomization=not args.no_dr,
                                 pushes=not args.no_push, push_interval_s=args.push_interval,
-                                friction=None if args.friction is None else tuple(args.friction))
+                                friction=None if args.friction is None else tuple(args.friction),
+                                **({} if args.seed is None else {"seed": args.seed}))
     dr = "off" if args.no_dr else ("on without pushes" if args.no_push else "on")
     if args.push_interval is not None:
       dr += (", a new push every control step" if args.push_interval == 0
              else f", each push held {args.push_interval:g} s")
     if args.friction is not None:
       dr += f", floor friction U[{args.friction[0]:g}, {args.friction[1]:g}]"
+    if args.seed is not None:
+      dr += f", rollout seed {args.seed}"
     which = "" if args.iteration is None else f" (checkpoint of iteration {args.iteration})"
     print(f"evaluating {args.run}{which}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)

@@ -195,6 +195,11 @@ def test_evaluation_without_pushes_keeps_the_other_randomization():
   assert r == dataclasses.replace(narrow.randomization, push_interval_s=0.0, friction=(0.1, 1.2))
   assert eval_dir_name(paper, 1000) == "eval_push_interval_0s_friction_0.1-1.2_it1000"
   assert eval_dir_name(evaluation.EvalConfig(friction=(0.1, 0.6))) == "eval_friction_0.1-0.6"
+  # --seed S: other episodes beside the default seed's, never over them.
+  assert eval_dir_name(evaluation.EvalConfig(seed=7)) == "eval_seed7"
+  assert eval_dir_name(dataclasses.replace(paper, seed=7), 1000) == \
+      "eval_push_interval_0s_friction_0.1-1.2_seed7_it1000"
+  assert eval_dir_name(evaluation.EvalConfig(seed=evaluation.EvalConfig().seed)) == "eval"
 
 
 def test_evaluate_rejects_a_bad_friction_range(tmp_path):
@@ -231,6 +236,7 @@ def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     (("experiments.evaluate", "--run", "/nonexistent/run"), "does not exist"),
     (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"), "--push-interval"),
     (("experiments.evaluate", "--run", "r", "--iteration", "0"), "--iteration"),
+    (("experiments.evaluate", "--run", "r", "--seed", "-1"), "--seed"),
 ])
 def test_cli_bad_input_is_one_line(args, words):
   """Bad input: exit status 2, one line on stderr naming the input, no traceback."""
