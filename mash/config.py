@@ -31,10 +31,12 @@ class TrainConfig:
       legged_gym starts at 1e-3 and humanoid-gym at 1e-5, both with an adaptive-KL schedule; by
       default we keep a fixed rate and take the standard PPO value 3e-4 (Schulman et al. 2017,
       continuous control).
-    learning_rate_schedule: ``'fixed'`` or ``'adaptive_kl'`` (rsl_rl's ``schedule='adaptive'``):
+    learning_rate_schedule: ``'fixed'``, ``'adaptive_kl'`` (rsl_rl's ``schedule='adaptive'``):
       before every minibatch step the rate is divided by 1.5 when the policy's KL from the
       rollout policy exceeds ``2 * desired_kl`` and multiplied by 1.5 when it is below
-      ``desired_kl / 2`` (and not 0), within [1e-5, 1e-2]. The KL is the loss's ``approx_kl``.
+      ``desired_kl / 2`` (and not 0), within [1e-5, 1e-2]. The KL is the loss's ``approx_kl``;
+      or ``'linear'`` (PureJaxRL's / CleanRL's ``anneal_lr``): from ``learning_rate`` down to 0
+      at the last step of ``num_iterations``.
     desired_kl: the KL the adaptive schedule aims at (rsl_rl ``desired_kl`` = 0.01).
     gamma: discount (legged_gym 0.99; humanoid-gym uses 0.994).
     gae_lambda: GAE lambda (legged_gym 0.95; humanoid-gym uses 0.9).
@@ -91,7 +93,7 @@ class TrainConfig:
   seed: int = 0
 
 
-LEARNING_RATE_SCHEDULES = ('fixed', 'adaptive_kl')
+LEARNING_RATE_SCHEDULES = ('fixed', 'adaptive_kl', 'linear')
 # rsl_rl's bounds for the adaptive schedule.
 MIN_LEARNING_RATE, MAX_LEARNING_RATE = 1e-5, 1e-2
 

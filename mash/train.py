@@ -209,17 +209,33 @@ class Trainer(NamedTuple):
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
   """Global-norm gradient clipping followed by Adam.
 
-  Under ``learning_rate_schedule='adaptive_kl'`` the rate lives in the optimizer state
-  (``optax.inject_hyperparams``; read and set with ``optax.tree_utils.tree_get/tree_set`` under the
-  name ``learning_rate``), so it is checkpointed and resumed with it. The update runs on all
+  Under ``learning_rate_schedule='adaptive_kl'`` or ``'linear'`` the rate lives in the optimizer
+  state (``optax.inject_hyperparams``; read and set with ``optax.tree_utils.tree_get/tree_set``
+  under the name ``learning_rate``), so it is checkpointed and resumed with it. The update runs on all
   parameters raveled into one vector (``optax.flatten``): the same math, but a handful of fused
   kernels instead of a few per parameter array, which shortens compilation.
   """
   if config.learning_rate_schedule == 'adaptive_kl':
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate)
+  elif config.learning_rate_schedule == 'linear':
+    adam = optax.inject_hyperparams(optax.adam)(learning_rate=linear_learning_rate(config))
   else:
     adam = optax.adam(config.learning_rate)
   return optax.flatten(optax.chain(optax.clip_by_global_norm(config.max_grad_norm), adam))
+
+
+def linear_learning_rate(config: TrainConfig) -> optax.Schedule:
+  """``learning_rate`` decaying linearly to 0 at the last minibatch step of ``num_iterations``
+  (PureJaxRL's and CleanRL's ``anneal_lr``): ``step -> []``."""
+  return optax.linear_schedule(config.learning_rate, 0.0, config.num_iterations *
+                               config.num_epochs * config.num_minibatches)
+
+
+def scheduled_learning_rate(opt_state: optax.OptState) -> jax.Array:
+  """``[]`` the rate of the last step under ``'linear'`` (the injected value; the schedule's own
+  step counter sits in the state under the same name)."""
+  return optax.tree_utils.tree_get(opt_state, 'learning_rate',
+                                   filtering=lambda _, value: hasattr(value, 'dtype'))
 
 
 def adapt_learning_rate(learning_rate: jax.Array, kl: jax.Array,
@@ -365,9 +381,11 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
           config.desired_kl)
       opt_state = optax.tree_utils.tree_set(opt_state, learning_rate=learning_rate)
       metrics = {**metrics, 'learning_rate': learning_rate}
-    else:
-      metrics = {**metrics, 'learning_rate': jnp.asarray(config.learning_rate, jnp.float32)}
     updates, opt_state = optimizer.update(grads, opt_state, opt.params)
+    if config.learning_rate_schedule == 'linear':  # the rate this step used
+      metrics = {**metrics, 'learning_rate': scheduled_learning_rate(opt_state)}
+    elif config.learning_rate_schedule == 'fixed':
+      metrics = {**metrics, 'learning_rate': jnp.asarray(config.learning_rate, jnp.float32)}
     return OptimizerState(optax.apply_updates(opt.params, updates), opt_state), metrics
 
   def sgd(opt: OptimizerState, normalizer: normalization.Normalizer | None,

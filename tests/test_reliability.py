@@ -199,7 +199,7 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
     (["--set", "algo=sac"], "algo 'sac' is unknown"),
     (["--set", "train.num_envs=0"], "num_envs must be >= 1"),
     (["--set", "train.learning_rate_schedule=cosine"],
-     "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl"),
+     "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl, linear"),
     (["--seeds", "0"], "seeds must be >= 1"),
     (["--resume", "DIR", "--set", "train.num_iterations=20"], "--set cannot be combined"),
 ])

@@ -157,6 +157,23 @@ def test_adaptive_learning_rate_trains_checkpoints_and_logs(toy_config, mash_env
     derived(dataclasses.replace(cfg, learning_rate_schedule='cosine'))
 
 
+def test_linear_learning_rate_decays_to_zero_at_the_last_iteration(toy_config, mash_env):
+  """``linear``: iteration i's 16 minibatch steps (4 epochs x 4) use the rates
+  3e-3 * (1 - step / 160) of its steps 16 i .. 16 i + 15 (10 iterations), logged as their mean;
+  the rate is in the optimizer state, so a resume goes on from it; 0 after the last step."""
+  import dataclasses
+  cfg = dataclasses.replace(toy_config, learning_rate_schedule='linear', num_iterations=10)
+  trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  state, first = trainer.train_epoch(trainer.init(jax.random.PRNGKey(0)))
+  state, second = trainer.train_epoch(state)
+  logged = np.concatenate([first['learning_rate'], second['learning_rate']])
+  expected = [3e-3 * (1.0 - (16 * i + 7.5) / 160) for i in range(10)]
+  np.testing.assert_allclose(logged, expected, rtol=1e-5)
+  assert float(train.scheduled_learning_rate(state.opt_state)) == pytest.approx(
+      3e-3 / 160, rel=1e-4)  # the last step's
+  assert float(train.linear_learning_rate(cfg)(160)) == 0.0
+
+
 def test_sharded_one_device_matches_unsharded(mash_trainer):
   mesh = jax.make_mesh((1,), ('devices',), axis_types=(jax.sharding.AxisType.Auto,))
   sharded = train.make_sharded_train_epoch(mash_trainer, mesh)
