@@ -92,18 +92,20 @@ def test_gpu_preset_is_the_measured_walking_run():
 
 
 def test_cpu_preset_is_the_measured_walking_run():
-  """The cpu preset is the recorded 2800-iteration CPU run cut at its iteration 1000 (what was
-  evaluated: nothing in training reads num_iterations), without that run's extra checkpoints."""
+  """The cpu preset is the recorded 1250-iteration CPU run that met issue 5's bar (friction
+  curriculum, linear learning-rate decay), without that run's extra checkpoints."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
-      "2026-11-26_cpu_bipedal_mash_step_pushes" / "config.json"
+      "2026-11-27_cpu_bipedal_mash_step_512envs_friction_curriculum_linear_lr" / "config.json"
   measured = experiment.from_json(recorded.read_text())
   preset = experiment.make_config("bipedal", "mash", "cpu")
-  assert dataclasses.replace(measured, keep_checkpoints=preset.keep_checkpoints, train=
-                             dataclasses.replace(measured.train, num_iterations=1000)) == preset
+  assert dataclasses.replace(measured, keep_checkpoints=preset.keep_checkpoints) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 24_000 == 1000 * preset.train.unroll_length
+  assert preset.env.randomization.friction_ramp_steps == 24_000
+  assert preset.env.randomization.friction == (0.1, 1.2)  # the paper's range, after the ramp
   assert preset.env.randomization.push_interval_s == 0.0
   smoke = experiment.make_config("bipedal", "mash", "smoke")
   assert smoke.env.reward_params.penalty_ramp_steps == 0 and smoke.train.init_log_std == -1.2
+  assert smoke.env.randomization.friction_initial is None
 
 
 def test_evaluate_writes_metrics_and_trajectories(smoke_run):
