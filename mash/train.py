@@ -231,9 +231,10 @@ def linear_learning_rate(config: TrainConfig) -> optax.Schedule:
                                config.num_epochs * config.num_minibatches)
 
 
-def scheduled_learning_rate(opt_state: optax.OptState) -> jax.Array:
-  """``[]`` the rate of the last step under ``'linear'`` (the injected value; the schedule's own
-  step counter sits in the state under the same name)."""
+def injected_learning_rate(opt_state: optax.OptState) -> jax.Array:
+  """``[]`` the rate in the optimizer state under ``'adaptive_kl'`` or ``'linear'`` (for
+  ``'linear'``, the last step's; the schedule's own step counter sits in the state under the
+  same name, hence the filter)."""
   return optax.tree_utils.tree_get(opt_state, 'learning_rate',
                                    filtering=lambda _, value: hasattr(value, 'dtype'))
 
@@ -377,13 +378,13 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
       # The KL of the current policy from the rollout's on this minibatch, before the step (as
       # rsl_rl); averaged over devices above, so every device sets the same rate.
       learning_rate = adapt_learning_rate(
-          optax.tree_utils.tree_get(opt_state, 'learning_rate'), metrics['approx_kl'],
+          injected_learning_rate(opt_state), metrics['approx_kl'],
           config.desired_kl)
       opt_state = optax.tree_utils.tree_set(opt_state, learning_rate=learning_rate)
       metrics = {**metrics, 'learning_rate': learning_rate}
     updates, opt_state = optimizer.update(grads, opt_state, opt.params)
     if config.learning_rate_schedule == 'linear':  # the rate this step used
-      metrics = {**metrics, 'learning_rate': scheduled_learning_rate(opt_state)}
+      metrics = {**metrics, 'learning_rate': injected_learning_rate(opt_state)}
     elif config.learning_rate_schedule == 'fixed':
       metrics = {**metrics, 'learning_rate': jnp.asarray(config.learning_rate, jnp.float32)}
     return OptimizerState(optax.apply_updates(opt.params, updates), opt_state), metrics

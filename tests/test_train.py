@@ -136,13 +136,12 @@ def test_adaptive_learning_rate_trains_checkpoints_and_logs(toy_config, mash_env
   """Under ``adaptive_kl`` the rate lives in the optimizer state: it moves, stays in bounds, is
   logged per iteration and survives a checkpoint round trip; ``fixed`` logs the config's rate."""
   import dataclasses
-  import optax
   cfg = dataclasses.replace(toy_config, learning_rate_schedule='adaptive_kl')
   trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
   state = trainer.init(jax.random.PRNGKey(0))
-  assert float(optax.tree_utils.tree_get(state.opt_state, 'learning_rate')) == pytest.approx(3e-3)
+  assert float(train.injected_learning_rate(state.opt_state)) == pytest.approx(3e-3)
   state, metrics = trainer.train_epoch(state)
-  lr = float(optax.tree_utils.tree_get(state.opt_state, 'learning_rate'))
+  lr = float(train.injected_learning_rate(state.opt_state))
   assert lr != pytest.approx(3e-3) and 1e-5 <= lr <= 1e-2
   chex.assert_shape(metrics['learning_rate'], (cfg.iterations_per_call,))
   assert np.all((metrics['learning_rate'] >= 1e-5) & (metrics['learning_rate'] <= 1e-2))
@@ -151,7 +150,7 @@ def test_adaptive_learning_rate_trains_checkpoints_and_logs(toy_config, mash_env
   manager.close()
   restored = checkpoint.restore_latest(tmp_path / 'ckpt',
                                        jax.eval_shape(trainer.init, jax.random.PRNGKey(0)))
-  assert float(optax.tree_utils.tree_get(restored.state.opt_state, 'learning_rate')) == lr
+  assert float(train.injected_learning_rate(restored.state.opt_state)) == lr
   np.testing.assert_allclose(learning_run['metrics']['learning_rate'], toy_config.learning_rate)
   with pytest.raises(ValueError, match="learning_rate_schedule 'cosine' is unknown"):
     derived(dataclasses.replace(cfg, learning_rate_schedule='cosine'))
@@ -169,7 +168,7 @@ def test_linear_learning_rate_decays_to_zero_at_the_last_iteration(toy_config, m
   logged = np.concatenate([first['learning_rate'], second['learning_rate']])
   expected = [3e-3 * (1.0 - (16 * i + 7.5) / 160) for i in range(10)]
   np.testing.assert_allclose(logged, expected, rtol=1e-5)
-  assert float(train.scheduled_learning_rate(state.opt_state)) == pytest.approx(
+  assert float(train.injected_learning_rate(state.opt_state)) == pytest.approx(
       3e-3 / 160, rel=1e-4)  # the last step's
   assert float(train.linear_learning_rate(cfg)(160)) == 0.0
 
