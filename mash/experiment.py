@@ -92,12 +92,12 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
   return dataclasses.replace(base, init_log_std=0.0)
 
 
-# Control steps per env over which the gpu and cpu presets phase in the smoothness and torque-rate
-# penalties: iteration 333 of 3000 at 48 steps per iteration; iteration 1000 of 1250 at 24.
+# Control steps per env over which the presets' curricula run: the gpu preset phases in the
+# smoothness and torque-rate penalties by iteration 333 of 3000 (48 steps per iteration); the cpu
+# preset phases them in and widens the floor friction from CPU_FRICTION_INITIAL to the paper's
+# U[0.1, 1.2] by iteration 1000 of 1250 (24 steps; CPU policies' falls are the slippery floors').
 GPU_PENALTY_RAMP_STEPS = 16_000
-CPU_PENALTY_RAMP_STEPS = 24_000
-# The cpu preset's friction curriculum: floors from U[0.1, 0.3] widening to the paper's
-# U[0.1, 1.2] over the same 24,000 steps (CPU policies' falls are the slippery floors').
+CPU_CURRICULUM_STEPS = 24_000
 CPU_FRICTION_INITIAL = (0.1, 0.3)
 
 
@@ -106,14 +106,14 @@ def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
   cfg = env_lib.EnvConfig(task=task, partition=partition)
   if preset == "smoke":
     cfg = dataclasses.replace(cfg, episode_length=200)
-  ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_PENALTY_RAMP_STEPS}.get(preset, 0)
+  ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_CURRICULUM_STEPS}.get(preset, 0)
   if ramp:
     cfg = dataclasses.replace(cfg, reward_params=dataclasses.replace(
         cfg.reward_params, penalty_ramp_steps=ramp))
   if preset == "cpu":
     cfg = dataclasses.replace(cfg, randomization=dataclasses.replace(
         cfg.randomization, friction_initial=CPU_FRICTION_INITIAL,
-        friction_ramp_steps=CPU_PENALTY_RAMP_STEPS))
+        friction_ramp_steps=CPU_CURRICULUM_STEPS))
   return cfg
 
 
