@@ -82,6 +82,27 @@ def test_shared_actor_swapping_agents_swaps_outputs(obs, shared):
   assert np.abs(out_relabelled[:, 0] - out[:, 0]).max() > 1e-4
 
 
+def test_shared_actor_applied_per_agent_equals_one_stacked_application(obs, shared):
+  # policy_apply runs the shared actor once per agent (for the CPU runtime's concurrency): the
+  # result must be the module applied to the stacked [batch, n_agents, obs_dim] in one call.
+  params = jax.tree.map(lambda x: x * 30.0, shared.params)
+  actor = nets.GroupActor(act_dim=2, hidden_sizes=SMALL['actor_hidden'])
+  stacked, _ = jit(actor.apply)(params['actors']['legs'], obs['legs'])
+  np.testing.assert_allclose(shared.policy(params, None, obs)['legs'].mean, stacked,
+                             rtol=1e-5, atol=1e-6)
+
+
+def test_elu_matches_jax_elu_in_value_and_gradient():
+  x = jnp.array([-80.0, -5.0, -1.0, -1e-3, -1e-7, 0.0, 1e-7, 1e-3, 1.0, 5.0, 80.0])
+  value_and_grad = lambda f: jit(jax.vmap(jax.value_and_grad(f)))(x)
+  ours, ours_grad = value_and_grad(nets.elu)
+  ref, ref_grad = value_and_grad(jax.nn.elu)
+  np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-7)
+  np.testing.assert_allclose(ours_grad, ref_grad, rtol=1e-6, atol=1e-12)
+  np.testing.assert_allclose(np.asarray(ours_grad)[[5, -1]], [1.0, 1.0])  # 1 at 0 and at large x
+  np.testing.assert_allclose(ours[0], -1.0)
+
+
 def test_per_agent_actors_have_distinct_params(obs, per_agent):
   actor = per_agent.params['actors']['legs']
   for leaf in jax.tree.leaves(actor):
