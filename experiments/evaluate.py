@@ -10,10 +10,18 @@ floor-friction range, appends ``_friction_<LO>-<HI>``), so a diagnostic never re
 evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
 the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name;
 ``--seed S`` draws other episodes (floors, robots, pushes) and appends ``_seed<S>``.
+
+``--tracking`` measures how the policy follows its commands instead: ``--episodes`` (default 64)
+episodes per command of ``mash.evaluation.TRACKING_GRID`` (standing; vx -0.3 to 0.8; vy +-0.2;
+yaw rate +-0.5), randomization and pushes as trained, into ``DIR/eval_tracking/``:
+``tracking.json`` (per command: falls and the achieved heading-frame velocities; the mean |error|
+per axis, the fall rate and the standing drift), ``tracking.png`` (commanded against achieved)
+and ``tracking_trajectories.npz`` (``commands [E,4]``, ``velocity [E,T,3]``, ``alive [E,T]``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -70,6 +78,107 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   return result
 
 
+def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
+                 write: bool = True) -> dict:
+  """Rolls every seed of a run's policy over the command grid (``evaluation.TRACKING_GRID``,
+  ``eval_cfg.num_episodes`` episodes per command) and returns (and writes) ``tracking.json``'s
+  content: the episodes of all seeds together, and ``per_seed`` when the run has several."""
+  from mash import env as env_lib, evaluation, networks, runs
+
+  run = runs.load_run(run_dir, iteration)
+  cfg = run.config
+  commands = evaluation.tracking_commands(eval_cfg.num_episodes)
+  grid_cfg = dataclasses.replace(eval_cfg, num_episodes=len(commands))
+  env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, grid_cfg))
+  policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
+  per_seed, trajs = [], []
+  for s in range(cfg.seeds):
+    params = runs.seed_slice(run.params, s, cfg.seeds)
+    nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
+    traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), grid_cfg,
+                              commands=commands)
+    per_seed.append(evaluation.tracking(traj, commands))
+    trajs.append(traj)
+  merged = {k: np.concatenate([t[k] for t in trajs])
+            for k in ("world_velocity", "euler", "alive", "command")}
+  all_commands = np.concatenate([commands] * cfg.seeds)
+  result = evaluation.tracking(merged, all_commands)
+  result["iteration"] = run.iteration
+  result["seeds"] = cfg.seeds
+  result["eval_config"] = {k: (list(v) if isinstance(v, tuple) else v)
+                           for k, v in dataclasses.asdict(eval_cfg).items()}
+  if cfg.seeds > 1:
+    result["per_seed"] = per_seed
+  if write:
+    out = Path(run_dir) / tracking_dir_name(eval_cfg, iteration)
+    out.mkdir(exist_ok=True)
+    (out / "tracking.json").write_text(json.dumps(result, indent=2))
+    velocity = evaluation.heading_velocity(merged["world_velocity"], merged["euler"][..., 2])
+    # The commands as the env ran them (last step): the grid's, unless something resampled them.
+    np.savez_compressed(out / "tracking_trajectories.npz", commands=merged["command"][:, -1],
+                        velocity=velocity.astype(np.float32), alive=merged["alive"],
+                        dt=trajs[0]["dt"])
+    plot_tracking(result, out / "tracking.png", f"{cfg.task} {cfg.algo}, iteration {run.iteration}")
+  return result
+
+
+def tracking_dir_name(eval_cfg, iteration: int | None = None) -> str:
+  """``eval_tracking`` followed by the suffixes of :func:`eval_dir_name` (``_no_push``,
+  ``_seed<S>``, ``_it<N>``, ...)."""
+  return "eval_tracking" + eval_dir_name(eval_cfg, iteration)[len("eval"):]
+
+
+def plot_tracking(result: dict, path: Path, title: str) -> None:
+  """Commanded against achieved velocity, one panel per axis, each command's fall rate beside it.
+
+  A panel shows the grid commands that vary its axis alone (the others zero, walking), the
+  commanded value on x and the achieved mean on y (bars: the standard deviation over episodes),
+  with the ideal diagonal; the standing command is a square at 0; a command with falls is ringed
+  in red with its fall rate written beside it.
+  """
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  from mash import evaluation
+
+  units = {"vx": "m/s", "vy": "m/s", "yaw_rate": "rad/s"}
+  fig, axes = plt.subplots(1, 3, figsize=(12, 4))
+  for i, (ax, axis) in enumerate(zip(axes, evaluation.TRACKING_AXES)):
+    others = [j for j in range(3) if j != i]
+    entries = [g for g in result["grid"] if g["command"][0] == 0
+               and all(g["command"][1 + j] == 0 for j in others)]
+    entries.sort(key=lambda g: g["command"][1 + i])
+    x = np.array([g["command"][1 + i] for g in entries])
+    y = np.array([g[axis] for g in entries])
+    spread = np.array([g["episode_std"][axis] for g in entries])
+    lo, hi = min(x.min(), y.min()) - 0.1, max(x.max(), y.max()) + 0.1
+    ax.plot([lo, hi], [lo, hi], "--", color="grey", label="commanded = achieved")
+    ax.errorbar(x, y, yerr=spread, fmt="o-", capsize=3, label="achieved (bar: std over episodes)")
+    standing = [g for g in result["grid"] if g["command"][0] > 0]
+    if standing:
+      g = standing[0]
+      ax.errorbar([0.0], [g[axis]], yerr=[g["episode_std"][axis]], fmt="s", color="black",
+                  capsize=3, label="standing")
+      entries = entries + standing
+      x, y = np.append(x, 0.0), np.append(y, g[axis])
+    for g, xi, yi in zip(entries, x, y):
+      if g["fall_rate"] > 0:
+        ax.plot(xi, yi, "o", color="red", markersize=9, fillstyle="none")
+        ax.annotate(f"{100 * g['fall_rate']:.0f} % falls", (xi, yi), textcoords="offset points",
+                    xytext=(4, -12), fontsize=8, color="red")
+    ax.set_xlabel(f"commanded {axis} ({units[axis]})")
+    ax.set_ylabel(f"achieved {axis} ({units[axis]})")
+    ax.set_title(f"{axis}: mean |error| {result['mean_abs_error'][axis]:.3f}")
+    ax.grid(alpha=0.3)
+  axes[0].legend(loc="upper left", fontsize=8)
+  drift = result["standing_drift"]
+  fig.suptitle(f"{title}: command tracking, {100 * result['fall_rate']:.1f} % falls"
+               + ("" if drift is None else f", standing drift {drift:.3f} m/s"))
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+  plt.close(fig)
+
+
 def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
   """``eval`` for the evaluation of the latest checkpoint with every randomized parameter on as
   trained, else the diagnostic's name; ``_friction_<lo>-<hi>`` appended for another friction
@@ -113,9 +222,10 @@ def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.evaluate", description=__doc__.splitlines()[0])
   p.add_argument("--run", required=True, help="run directory")
-  p.add_argument("--episodes", type=int, default=32)
+  p.add_argument("--episodes", type=int, default=None,
+                 help="episodes (default 32), or episodes per command with --tracking (default 64)")
   p.add_argument("--seconds", type=float, default=20.0, help="episode duration")
-  p.add_argument("--command-vx", type=float, default=0.4, help="forward command (m/s)")
+  p.add_argument("--command-vx", type=float, default=None, help="forward command (m/s, default 0.4)")
   p.add_argument("--no-dr", action="store_true",
                  help="evaluate without domain randomization (writes DIR/eval_no_dr/)")
   p.add_argument("--no-push", action="store_true",
@@ -135,9 +245,19 @@ def main(argv=None) -> None:
                       "the evaluation's fixed seed; another one appends _seed<S> to the output "
                       "directory, e.g. to confirm on fresh episodes a checkpoint picked among "
                       "several)")
+  p.add_argument("--tracking", action="store_true",
+                 help="command tracking instead: every command of the grid (standing; vx -0.3 to "
+                      "0.8; vy +-0.2; yaw rate +-0.5), --episodes per command (default 64), "
+                      "writes DIR/eval_tracking/tracking.json, tracking.png")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
+    if args.tracking and args.command_vx is not None:
+      raise common.UserError("--tracking rolls out its own grid of commands; drop --command-vx")
+    if args.episodes is None:
+      args.episodes = 64 if args.tracking else 32
+    if args.command_vx is None:
+      args.command_vx = 0.4
     if args.episodes < 1 or args.seconds <= 0:
       raise common.UserError("--episodes must be >= 1 and --seconds > 0")
     if args.iteration is not None and args.iteration < 1:
@@ -164,6 +284,24 @@ def main(argv=None) -> None:
     if args.seed is not None:
       dr += f", rollout seed {args.seed}"
     which = "" if args.iteration is None else f" (checkpoint of iteration {args.iteration})"
+    if args.tracking:
+      n = len(evaluation.TRACKING_GRID)
+      print(f"tracking {args.run}{which}: {n} commands x {args.episodes} episodes x "
+            f"{args.seconds:g} s, DR {dr}", flush=True)
+      result = tracking_run(args.run, cfg, iteration=args.iteration)
+      for g in result["grid"]:
+        c = g["command"]
+        print(f"  command {'standing' if c[0] else 'walking '} vx {c[1]:+.2f} vy {c[2]:+.2f} "
+              f"yaw {c[3]:+.2f} -> vx {g['vx']:+.3f} vy {g['vy']:+.3f} yaw {g['yaw_rate']:+.3f}, "
+              f"falls {g['fall_rate']:.3f} of {g['episodes']}")
+      err = result["mean_abs_error"]
+      drift = result["standing_drift"]
+      print(f"mean |error|: vx {err['vx']:.3f} m/s, vy {err['vy']:.3f} m/s, yaw rate "
+            f"{err['yaw_rate']:.3f} rad/s; falls {result['fall_rate']:.3f}; standing drift "
+            + ("n/a" if drift is None else f"{drift:.3f} m/s"))
+      out = f"{args.run}/{tracking_dir_name(cfg, args.iteration)}"
+      print(f"wrote {out}/tracking.json, tracking.png, tracking_trajectories.npz")
+      return
     print(f"evaluating {args.run}{which}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)
     result = evaluate_run(args.run, cfg, iteration=args.iteration)

@@ -369,16 +369,23 @@ class MashEnv(brax_base.Env):
     return self._q_default.at[self._ctrl].add(scaled)
 
   # --------------------------------------------------------------------------------- reset/step
-  def reset(self, rng: jax.Array, env_steps: jax.Array | int = 0) -> State:
+  def reset(self, rng: jax.Array, env_steps: jax.Array | int = 0,
+            command: jax.Array | None = None) -> State:
     """A fresh episode in an env slot that has run ``env_steps`` control steps (``[]`` int; the
-    curricula's clock, e.g. the friction range it draws from; 0 for a fresh run)."""
+    curricula's clock, e.g. the friction range it draws from; 0 for a fresh run). ``command``
+    ``[4]`` (standing flag, vx, vy, yaw rate) starts the episode on that command instead of one
+    drawn from ``config.commands`` (evaluation grids); it is still resampled every
+    ``commands.resample_s``."""
     env_steps = jnp.asarray(env_steps, jnp.int32)
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
     dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints,
                           env_steps)
     data = mjx.make_data(self.mjx_model, impl="jax", device=jax.local_devices()[0])
     data = data.replace(qpos=self._home_qpos)
-    command = self._sample_command(k_cmd)
+    if command is None:
+      command = self._sample_command(k_cmd)
+    else:
+      command = jnp.asarray(command, jnp.float32).reshape(4)
     a0 = jnp.zeros((self.action_size,))
     info: dict[str, Any] = {
         "rng": rng,

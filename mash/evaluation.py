@@ -77,7 +77,8 @@ Perturbation = Callable[[Any, jax.Array, jax.Array], Any]
 
 def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.Array],
             cfg: EvalConfig, perturb: Perturbation | None = None,
-            values: np.ndarray | None = None) -> dict[str, np.ndarray]:
+            values: np.ndarray | None = None,
+            commands: np.ndarray | None = None) -> dict[str, np.ndarray]:
   """Runs ``cfg.num_episodes`` deterministic episodes.
 
   Args:
@@ -87,12 +88,15 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     perturb: optional ``(state, step, value) -> state`` applied before every step (robustness
       sweeps: :func:`friction_and_push`).
     values: ``[num_episodes, ...]`` the per-episode value handed to ``perturb``.
+    commands: optional ``[num_episodes, 4]`` command of each episode (standing flag, vx, vy,
+      yaw rate; :func:`tracking`) instead of the env config's.
 
   Returns:
     ``actions [E,T,A]``, ``base_height [E,T]`` (torso above the soles, m), ``euler [E,T,3]``,
     ``hip_pitch [E,T,2]`` and ``hip_pitch_ref [E,T,2]`` (left, right; rad, absolute),
-    ``forward_velocity [E,T]`` (torso frame, m/s), ``alive [E,T]`` (1 until the fall),
-    ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
+    ``forward_velocity [E,T]`` (torso frame, m/s), ``world_velocity [E,T,3]`` (torso vx, vy in
+    the world frame, m/s, and the world-frame yaw rate, rad/s), ``command [E,T,4]`` (the command
+    in force), ``alive [E,T]`` (1 until the fall), ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
   """
   steps = int(round(cfg.episode_s / env.dt))
   hips = hip_pitch_index(env)
@@ -106,14 +110,20 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     s = env.sensors(nxt.pipeline_state)
     q_ref, _ = env.gait(nxt.info["phase"], nxt.info["command"][0])
     contact, _ = env.contacts(nxt.pipeline_state)
+    qvel = nxt.pipeline_state.qvel
+    # The free joint's linear velocity is in the world frame, its angular velocity in the torso's.
+    conj = s["quat"] * jnp.array([1.0, -1.0, -1.0, -1.0])
+    yaw_rate = env_lib.quat_rotate_inverse(conj, qvel[3:6])[2]
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
                hip_pitch=s["q"][hips], hip_pitch_ref=(env._q_default + q_ref)[hips],
-               forward_velocity=s["lin_vel"][0], done=nxt.done, contact=contact,
-               friction=nxt.info["dr"].friction)
+               forward_velocity=s["lin_vel"][0],
+               world_velocity=jnp.stack([qvel[0], qvel[1], yaw_rate]),
+               command=nxt.info["command"], done=nxt.done,
+               contact=contact, friction=nxt.info["dr"].friction)
     return (nxt, value), out
 
-  def episode(key, value):
-    state = env.reset(key)
+  def episode(key, value, command):
+    state = env.reset(key) if commands is None else env.reset(key, command=command)
     _, traj = jax.lax.scan(one_step, (state, value), jnp.arange(steps))
     return traj
 
@@ -122,7 +132,11 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   if values.shape[:1] != (cfg.num_episodes,):
     raise ValueError(f"values must have a leading axis of {cfg.num_episodes} (one per episode), "
                      f"got shape {values.shape}")
-  traj = jax.device_get(jax.jit(jax.vmap(episode))(keys, values))
+  cmds = jnp.zeros((cfg.num_episodes, 4)) if commands is None else jnp.asarray(commands,
+                                                                               jnp.float32)
+  if cmds.shape != (cfg.num_episodes, 4):
+    raise ValueError(f"commands must have shape ({cfg.num_episodes}, 4), got {cmds.shape}")
+  traj = jax.device_get(jax.jit(jax.vmap(episode))(keys, values, cmds))
   traj = {k: np.asarray(v) for k, v in traj.items()}
   done = traj.pop("done")
   traj["friction"] = traj["friction"][:, 0]
@@ -238,3 +252,92 @@ def evaluate(traj: dict[str, np.ndarray], command_vx: float,
   if "friction" in traj:
     out["fall_rate_by_friction"] = falls_by_friction(traj["friction"], survived)
   return out
+
+
+# The command-tracking grid (standing flag, vx m/s, vy m/s, yaw rate rad/s): standing, forward
+# speeds across the training range at vy = yaw rate = 0 (vx = 0 steps in place), then the lateral
+# and turning commands at the ends of their training ranges.
+TRACKING_GRID = (
+    (1.0, 0.0, 0.0, 0.0),
+    (0.0, -0.3, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (0.0, 0.2, 0.0, 0.0), (0.0, 0.4, 0.0, 0.0),
+    (0.0, 0.6, 0.0, 0.0), (0.0, 0.8, 0.0, 0.0),
+    (0.0, 0.0, 0.2, 0.0), (0.0, 0.0, -0.2, 0.0),
+    (0.0, 0.0, 0.0, 0.5), (0.0, 0.0, 0.0, -0.5),
+)
+TRACKING_AXES = ("vx", "vy", "yaw_rate")
+
+
+def heading_velocity(world_velocity: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+  """Torso velocity in the heading frame (the world frame turned by the torso's yaw alone).
+
+  Args:
+    world_velocity: ``[..., 3]`` world-frame vx, vy (m/s) and yaw rate (rad/s).
+    yaw: ``[...]`` torso yaw (rad).
+
+  Returns:
+    ``[..., 3]``: forward and leftward speed along the heading (m/s), yaw rate (rad/s).
+  """
+  c, s = np.cos(yaw), np.sin(yaw)
+  vx, vy = world_velocity[..., 0], world_velocity[..., 1]
+  return np.stack([c * vx + s * vy, -s * vx + c * vy, world_velocity[..., 2]], axis=-1)
+
+
+def tracking(traj: dict[str, np.ndarray], commands: np.ndarray) -> dict[str, Any]:
+  """How a rollout over a grid of commands followed them.
+
+  Each episode's velocity is its heading-frame velocity averaged over the steps it was alive; a
+  command's ``vx``, ``vy`` and ``yaw_rate`` average that over the steps alive of its episodes, and
+  its ``abs_error`` is the mean over its episodes of |episode velocity - command|, so an
+  oscillating gait is not an error but one that walks at the wrong speed is, on every floor.
+
+  Args:
+    traj: a :func:`rollout` with ``world_velocity [E,T,3]``, ``euler [E,T,3]``, ``alive [E,T]``.
+    commands: ``[E, 4]`` each episode's command; episodes with equal commands form one grid entry
+      (in order of first appearance).
+
+  Returns:
+    ``grid``: one entry per distinct command: ``command`` [standing, vx, vy, yaw_rate],
+    ``episodes``, ``fall_rate``, ``vx``, ``vy``, ``yaw_rate``, ``abs_error`` {axis: ...} and
+    ``episode_std`` {axis: standard deviation of the episodes' velocities};
+    ``mean_abs_error`` {axis: mean over the grid of ``abs_error``}; ``fall_rate`` over all
+    episodes; ``standing_drift`` (m/s): over the standing command's episodes, the mean norm of
+    the planar velocity (net displacement over time alive), ``None`` without a standing command.
+  """
+  commands = np.asarray(commands, np.float64).reshape(-1, 4)
+  alive = np.asarray(traj["alive"], np.float64)
+  if commands.shape[0] != alive.shape[0]:
+    raise ValueError(f"commands has {commands.shape[0]} rows for {alive.shape[0]} episodes")
+  vel = heading_velocity(np.asarray(traj["world_velocity"], np.float64), traj["euler"][..., 2])
+  steps_alive = np.maximum(alive.sum(axis=1), 1.0)  # [E]
+  episode_vel = (vel * alive[..., None]).sum(axis=1) / steps_alive[:, None]  # [E, 3]
+  survived = alive.min(axis=1) > 0
+
+  grid, drift = [], None
+  _, first = np.unique(commands, axis=0, return_index=True)
+  for command in commands[np.sort(first)]:
+    pick = np.all(commands == command, axis=1)
+    w = steps_alive[pick] / steps_alive[pick].sum()
+    achieved = (episode_vel[pick] * w[:, None]).sum(axis=0)
+    errors = np.abs(episode_vel[pick] - command[1:]).mean(axis=0)
+    entry = {"command": [round(float(c), 6) for c in command], "episodes": int(pick.sum()),
+             "fall_rate": float(1.0 - survived[pick].mean())}
+    entry.update({axis: float(achieved[i]) for i, axis in enumerate(TRACKING_AXES)})
+    entry["abs_error"] = {axis: float(errors[i]) for i, axis in enumerate(TRACKING_AXES)}
+    spread = episode_vel[pick].std(axis=0)
+    entry["episode_std"] = {axis: float(spread[i]) for i, axis in enumerate(TRACKING_AXES)}
+    grid.append(entry)
+    if command[0] > 0:
+      drift = float(np.linalg.norm(episode_vel[pick, :2], axis=-1).mean())
+  return {
+      "grid": grid,
+      "mean_abs_error": {axis: float(np.mean([g["abs_error"][axis] for g in grid]))
+                         for axis in TRACKING_AXES},
+      "fall_rate": float(1.0 - survived.mean()),
+      "standing_drift": drift,
+  }
+
+
+def tracking_commands(episodes_per_command: int,
+                      grid: tuple[tuple[float, ...], ...] = TRACKING_GRID) -> np.ndarray:
+  """``[len(grid) * episodes_per_command, 4]`` episode commands, each grid entry repeated."""
+  return np.repeat(np.asarray(grid, np.float32), episodes_per_command, axis=0)

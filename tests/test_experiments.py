@@ -239,6 +239,7 @@ def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"), "--push-interval"),
     (("experiments.evaluate", "--run", "r", "--iteration", "0"), "--iteration"),
     (("experiments.evaluate", "--run", "r", "--seed", "-1"), "--seed"),
+    (("experiments.evaluate", "--run", "r", "--tracking", "--command-vx", "0.4"), "--command-vx"),
 ])
 def test_cli_bad_input_is_one_line(args, words):
   """Bad input: exit status 2, one line on stderr naming the input, no traceback."""
