@@ -166,13 +166,18 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   if config.episode_length < 1:
     raise ValueError(f"episode_length must be >= 1, got {config.episode_length}")
   params = config.reward_params
-  unknown = [t for t in params.ramped_terms if t not in rewards.TERMS]
-  if unknown:
-    raise ValueError(f"reward_params.ramped_terms: '{unknown[0]}' is not a reward term; expected "
-                     f"names from {', '.join(rewards.TERMS)}")
-  if params.penalty_ramp_steps < 0:
-    raise ValueError("reward_params.penalty_ramp_steps must be >= 0 (0 = no curriculum), got "
-                     f"{params.penalty_ramp_steps}")
+  for field in ("ramped_terms", "boosted_terms"):
+    unknown = [t for t in getattr(params, field) if t not in rewards.TERMS]
+    if unknown:
+      raise ValueError(f"reward_params.{field}: '{unknown[0]}' is not a reward term; expected "
+                       f"names from {', '.join(rewards.TERMS)}")
+  for field in ("penalty_ramp_steps", "tracking_boost_steps"):
+    if getattr(params, field) < 0:
+      raise ValueError(f"reward_params.{field} must be >= 0 (0 = no curriculum), got "
+                       f"{getattr(params, field)}")
+  if not params.tracking_boost >= 1.0:  # also NaN
+    raise ValueError("reward_params.tracking_boost must be >= 1 (1 = no curriculum), got "
+                     f"{params.tracking_boost}")
   dr = config.randomization
   if dr.friction_ramp_steps < 0:
     raise ValueError("randomization.friction_ramp_steps must be >= 0 (0 = no curriculum), got "

@@ -62,6 +62,12 @@ class RewardParams:
       from the first step. Episode resets do not restart the count; a resumed run continues it.
     ramped_terms: the terms the curriculum phases in. Default: the action-smoothness and
       torque-rate penalties, the ones that grow with the action noise itself.
+    tracking_boost: a second curriculum (ours): the scales of ``boosted_terms`` start at this
+      multiple of their value and fall linearly to it (x1) over ``tracking_boost_steps`` control
+      steps of each env slot, so that following the command is learned while the policy is still
+      exploring and the reward after the curriculum is the paper's. 1 (default): off.
+    tracking_boost_steps: length of that curriculum in control steps per env slot.
+    boosted_terms: the terms it multiplies. Default: the two velocity-tracking terms.
   """
 
   tracking_sigma: float = 0.25
@@ -76,6 +82,9 @@ class RewardParams:
   only_positive: bool = True
   penalty_ramp_steps: int = 0
   ramped_terms: tuple[str, ...] = ("action_smoothness_1", "action_smoothness_2", "torque_rate")
+  tracking_boost: float = 1.0
+  tracking_boost_steps: int = 0
+  boosted_terms: tuple[str, ...] = ("tracking_lin_vel", "tracking_ang_vel")
 
 
 class RewardInputs(NamedTuple):
@@ -232,15 +241,31 @@ def penalty_ramp(env_steps: jax.Array | None, params: RewardParams) -> jax.Array
   return jnp.clip(jnp.asarray(env_steps, jnp.float32) / params.penalty_ramp_steps, 0.0, 1.0)
 
 
+def tracking_boost(env_steps: jax.Array | None, params: RewardParams) -> jax.Array:
+  """[] multiplier of the ``boosted_terms``' scales after ``env_steps`` steps: from
+  ``params.tracking_boost`` down to 1 at ``params.tracking_boost_steps``, 1 after (and when off)."""
+  if params.tracking_boost == 1.0 or params.tracking_boost_steps <= 0:
+    return jnp.ones(())
+  if env_steps is None:
+    raise ValueError("reward_params.tracking_boost is set but RewardInputs.env_steps is None")
+  left = 1.0 - jnp.clip(jnp.asarray(env_steps, jnp.float32) / params.tracking_boost_steps, 0, 1)
+  return 1.0 + (params.tracking_boost - 1.0) * left
+
+
 def reward_terms(x: RewardInputs, scales: RewardScales, params: RewardParams) -> dict[str, jax.Array]:
   """Each non-zero term times its scale and dt: ``{name: []}``; their sum is the step reward.
 
-  The ``params.ramped_terms`` are further multiplied by :func:`penalty_ramp` (1 unless the
-  curriculum is on).
+  The ``params.ramped_terms`` are further multiplied by :func:`penalty_ramp` and the
+  ``params.boosted_terms`` by :func:`tracking_boost` (both 1 unless their curriculum is on).
   """
   ramp = penalty_ramp(x.env_steps, params)
-  return {name: fn(x, params) * getattr(scales, name) * x.dt
-          * (ramp if name in params.ramped_terms else 1.0)
+  boost = tracking_boost(x.env_steps, params)
+
+  def curriculum(name):
+    return ((ramp if name in params.ramped_terms else 1.0)
+            * (boost if name in params.boosted_terms else 1.0))
+
+  return {name: fn(x, params) * getattr(scales, name) * x.dt * curriculum(name)
           for name, fn in TERMS.items() if getattr(scales, name) != 0.0}
 
 

@@ -192,6 +192,8 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
     (["--set", "checkpoint_every=0"], "checkpoint_every must be >= 1"),
     (["--set", "env.reward_params.ramped_terms=torque_rat"],
      "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
+    (["--set", "env.reward_params.tracking_boost=0.5"],
+     "env.reward_params.tracking_boost must be >= 1"),
     (["--set", "env.randomization.friction_initial=0.3,0.1"],
      "env.randomization.friction_initial must be a range (lo, hi) with 0 < lo <= hi"),
     (["--set", "env.randomization.friction_ramp_steps=-5"],

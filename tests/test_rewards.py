@@ -186,6 +186,23 @@ def test_penalty_ramp_phases_in_the_named_terms():
   assert all(float(full[n]) < 0 for n in ramped)  # they are penalties: the ramp raises the reward
 
 
+def test_tracking_boost_falls_to_the_paper_scales():
+  """tracking_boost 3 over 100 steps: the tracking terms x3 at step 0, x2 at step 50 (1 + 2 * 1/2),
+  x1 from step 100 on; every other term untouched; both curricula compose."""
+  scales = rewards.RewardScales()
+  full = rewards.reward_terms(_inputs(), scales, P)
+  boost = dataclasses.replace(P, tracking_boost=3.0, tracking_boost_steps=100,
+                              penalty_ramp_steps=100)
+  boosted = set(boost.boosted_terms)
+  assert boosted == {"tracking_lin_vel", "tracking_ang_vel"}
+  for steps, factor, ramp in ((0, 3.0, 0.0), (50, 2.0, 0.5), (100, 1.0, 1.0), (400, 1.0, 1.0)):
+    terms = rewards.reward_terms(_inputs(env_steps=jnp.int32(steps)), scales, boost)
+    for name in PAPER_TERMS:
+      want = full[name] * (factor if name in boosted else 1.0) * (
+          ramp if name in boost.ramped_terms else 1.0)
+      np.testing.assert_allclose(terms[name], want, rtol=1e-6, err_msg=f"{name} at {steps}")
+
+
 def test_total_reward_only_positive_clip():
   """total_reward sums the terms; only_positive clips a negative sum to 0 and leaves positives."""
   negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}   # sum -0.6
