@@ -74,6 +74,9 @@ def add_distributed_args(parser: argparse.ArgumentParser) -> None:
                  help="processes in the run (env MASH_NUM_PROCESSES; default 1)")
   g.add_argument("--process-id", default=None, metavar="I",
                  help="this process's index, 0 .. N-1; 0 writes the run (env MASH_PROCESS_ID)")
+  g.add_argument("--local-processes", default="auto", metavar="N",
+                 help="train as N processes on this host joined on 127.0.0.1 (default auto: 2 on "
+                      "a CPU with 2+ cores for one seed above the smoke preset, else 1)")
 
 
 def _int_option(value: str | None, flag: str, env: str) -> int | None:
@@ -124,6 +127,111 @@ def join_processes(args: argparse.Namespace) -> bool:
                     f"{type(e).__name__}: {first}") from None
   import jax
   return jax.process_index() == 0
+
+
+def joined_by_hand(args: argparse.Namespace) -> bool:
+  """Whether the multi-host flags (or their ``MASH_*`` variables) join processes by hand."""
+  return bool(args.num_processes or os.environ.get(DISTRIBUTED_ENV["num_processes"])
+              or args.coordinator or args.process_id is not None)
+
+
+def local_processes_wanted(args: argparse.Namespace, preset: str, seeds: int) -> int:
+  """How many processes this command should run on this host: ``--local-processes`` when given,
+  else (``auto``) 2 when JAX's backend is the CPU, the host has 2 or more cores, the run trains
+  one seed at a preset other than ``smoke``, and no ``--num-processes`` / ``MASH_NUM_PROCESSES``
+  joins processes by hand; 1 otherwise.
+
+  Why 2 on a CPU: one process keeps about 1.3 of 2 cores busy, two processes on a global 2-device
+  mesh step about 1.3-1.9x the envs of one (``benchmarks/scaling_devices.md``). Not for ``smoke``:
+  at its 64 envs the per-step collectives cost more than the second core brings (0.52x measured).
+
+  Raises:
+    UserError: ``--local-processes`` is not ``auto`` or a whole number >= 1, or it is combined with
+      the multi-host flags.
+  """
+  value = args.local_processes
+  by_hand = joined_by_hand(args)
+  if value == "auto":
+    if by_hand or seeds != 1 or preset == "smoke":
+      return 1
+    import jax
+    return 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+  try:
+    n = int(value)
+  except ValueError:
+    n = 0
+  if n < 1:
+    raise UserError(f"--local-processes must be 'auto' or a whole number >= 1, got '{value}'")
+  if n > 1 and by_hand:
+    raise UserError("--local-processes cannot be combined with --coordinator / --num-processes / "
+                    "--process-id (they join processes by hand)")
+  return n
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+  """Linux: the child gets SIGTERM (and saves a checkpoint) if the supervising process dies."""
+  try:
+    import ctypes
+    import signal
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+  except (OSError, AttributeError):
+    pass
+
+
+def run_local_processes(module: str, argv: list[str], n: int) -> int:
+  """Runs ``python -m module *argv`` as ``n`` processes on this host joined on 127.0.0.1 (the
+  multi-host path on one machine) and supervises them; returns the exit status to leave with.
+
+  Process 0 prints as a one-process run would; the others' output goes to a temporary file,
+  shown only when one of them fails. SIGINT and SIGTERM reaching this process are passed once to
+  every child (they stop together after the call in flight, with a checkpoint); the children run
+  in their own session, so a terminal's Ctrl-C reaches them only through here.
+  """
+  import signal
+  import socket
+  import subprocess
+  import tempfile
+
+  with socket.socket() as sock:
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+  env = dict(os.environ)
+  env.update({DISTRIBUTED_ENV["coordinator"]: f"127.0.0.1:{port}",
+              DISTRIBUTED_ENV["num_processes"]: str(n), "MASH_LOCAL_PROCESSES": "1"})
+  logs, procs = [], []
+  for i in range(n):
+    env[DISTRIBUTED_ENV["process_id"]] = str(i)
+    log = None if i == 0 else tempfile.TemporaryFile(mode="w+")
+    logs.append(log)
+    procs.append(subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env),
+                                  stdout=log, stderr=subprocess.STDOUT if log else None,
+                                  start_new_session=True, preexec_fn=_die_with_parent))
+
+  def forward(signum, frame):
+    for p in procs:
+      if p.poll() is None:
+        p.send_signal(signum)
+
+  previous = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
+  try:
+    while any(p.poll() is None for p in procs):
+      failed = [p for p in procs if p.poll() not in (None, 0, 130, 143)]
+      if failed:  # a dead peer leaves the others waiting in a collective: stop them
+        time.sleep(5)
+        for p in procs:
+          if p.poll() is None:
+            p.terminate()
+      time.sleep(0.2)
+  finally:
+    for s, handler in previous.items():
+      signal.signal(s, handler)
+  codes = [p.wait() for p in procs]
+  for i, (code, log) in enumerate(zip(codes, logs)):
+    if log is not None and code not in (0, codes[0]):
+      log.seek(0)
+      tail = log.read().strip().splitlines()[-20:]
+      print(f"process {i} of {n} exited with status {code}:", *tail, sep="\n  ", file=sys.stderr)
+  return next((c for c in codes if c != 0), 0)
 
 
 def shared_time() -> float:

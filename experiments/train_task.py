@@ -7,10 +7,11 @@ Examples:
   python -m experiments.bipedal --resume runs/bipedal_mash_cpu_20261125-120000
 
 Devices: one process trains on every device it sees (several GPUs: the env batch is split over
-them). Several processes (one per host, or per CPU core) run the SAME command, each with
---coordinator HOST:PORT (process 0's address) --num-processes N --process-id I (0 .. N-1), or the
-environment variables MASH_COORDINATOR, MASH_NUM_PROCESSES, MASH_PROCESS_ID; process 0 writes the
-run and prints. See docs/multi_device.md.
+them). On a CPU with 2 or more cores, a one-seed run above the smoke preset trains as two local
+processes joined on 127.0.0.1 (--local-processes 1 keeps one process). Several hosts run the
+SAME command, each with --coordinator HOST:PORT (process 0's address) --num-processes N
+--process-id I (0 .. N-1), or the environment variables MASH_COORDINATOR, MASH_NUM_PROCESSES,
+MASH_PROCESS_ID; process 0 writes the run and prints. See docs/multi_device.md.
 
 Exit status: 0 finished; 2 bad input (one line on stderr, nothing written); 130 / 143 stopped by
 Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
@@ -18,10 +19,37 @@ Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
+from pathlib import Path
 
 from experiments import common
+
+
+def _local_processes(task: str, args) -> int:
+  """How many local processes to train with (``common.local_processes_wanted``); when more than
+  one, the config, the run directory and the split of the env batch are checked here first, so a
+  mistake is one line from one process, before any process starts."""
+  from mash import config as train_config, experiment, runs
+  if common.joined_by_hand(args):  # decided without JAX, which must not start before the join
+    return common.local_processes_wanted(args, "", 1)
+  if args.resume:
+    cfg = runs.load_config(args.resume)
+  else:
+    cfg = experiment.make_config(task, args.algo, args.preset or common.default_preset()[0],
+                                 args.seeds, args.ablation, args.set)
+  n = common.local_processes_wanted(args, cfg.preset, cfg.seeds)
+  if n > 1:
+    if args.out and not args.resume and runs.is_run(Path(args.out)):
+      raise common.UserError(f"'{args.out}' already holds a run; pass --resume {args.out} to "
+                             "continue it, or choose another --out")
+    try:
+      train_config.derived(cfg.train, n)
+    except ValueError as e:
+      raise common.UserError(f"{str(e).rstrip('.')}: the env batch is split over {n} local "
+                             "processes (--local-processes 1 trains in one)") from None
+  return n
 
 
 def main(task: str, argv: list[str] | None = None) -> None:
@@ -41,6 +69,11 @@ def main(task: str, argv: list[str] | None = None) -> None:
   args = p.parse_args(argv)
 
   with common.user_errors():
+    if "MASH_LOCAL_PROCESSES" not in os.environ:  # not already one of the supervised processes
+      n = _local_processes(task, args)
+      if n > 1:
+        sys.exit(common.run_local_processes(f"experiments.{task}",
+                                            sys.argv[1:] if argv is None else list(argv), n))
     primary = common.join_processes(args)  # before any other JAX work
     say = print if primary else (lambda *a, **k: None)
     from mash import experiment, runs
