@@ -182,6 +182,9 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   if dr.friction_ramp_steps < 0:
     raise ValueError("randomization.friction_ramp_steps must be >= 0 (0 = no curriculum), got "
                      f"{dr.friction_ramp_steps}")
+  if not 0.0 <= dr.torque_noise < 1.0:  # also NaN
+    raise ValueError("randomization.torque_noise must be a fraction of the torque limit in "
+                     f"[0, 1), got {dr.torque_noise}")
   for name in ("friction", "friction_initial"):
     r = getattr(dr, name)
     if r is not None and not (len(r) == 2 and 0.0 < r[0] <= r[1]):
@@ -495,12 +498,23 @@ class MashEnv(brax_base.Env):
     target_old = info["q_target"]
     kp, kd = self._kp * dr.kp_scale, self._kd * dr.kd_scale
 
+    # Torque noise, drawn anew on every substep: the motors apply the PD torque plus a uniform
+    # error of up to torque_noise x their limit (then clipped to it). The rewards judge the torque
+    # the policy commanded: noise it cannot see or control would otherwise dominate torque_rate.
+    noise_scale = r.torque_noise * self._tau_max if r.enabled and r.torque_noise > 0 else None
+    k_noise = jax.random.fold_in(k_delay, 1)  # leaves every other random stream as it was
+
     def substep(k, carry):
       data, _ = carry
       w_old = jnp.clip(delay - k, 0.0, 1.0)
       target = w_old * target_old + (1.0 - w_old) * target_new
       tau = pd_torque(target, data.qpos[self._qadr], data.qvel[self._dadr], kp, kd, self._tau_max)
-      data = data.replace(ctrl=data.ctrl.at[self._act].set(tau))
+      applied = tau
+      if noise_scale is not None:
+        noise = jax.random.uniform(jax.random.fold_in(k_noise, k), tau.shape, minval=-1.0,
+                                   maxval=1.0) * noise_scale
+        applied = jnp.clip(tau + noise, -self._tau_max, self._tau_max)
+      data = data.replace(ctrl=data.ctrl.at[self._act].set(applied))
       return mjx.step(model, data), tau
 
     data, torque = jax.lax.fori_loop(0, self.n_substeps, substep,

@@ -1,9 +1,10 @@
-"""Domain randomization: the paper's eleven parameters (Table "Domain randomization parameters").
+"""Domain randomization: the paper's eleven parameters (Table "Domain randomization parameters")
+and the torque noise its text adds.
 
 Reset-time draws (friction, link masses, CoM offset, gravity, joint damping / friction / armature,
 Kp and Kd scales) live in :class:`DomainParams`, one per environment, kept in the env state; the
 MJX model each env steps is the shared model with those fields replaced (``apply``), so under
-``vmap`` every env has its own physics. Per-step draws (motor delay, pushes) happen in the env step.
+``vmap`` every env has its own physics. Per-step draws (motor delay, pushes, torque noise) happen in the env step.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ class DomainRandConfig:
     armature: per-joint reflected rotor inertia (kg m^2).
     kp_scale: per-joint multiplier of the PD stiffness.
     kd_scale: per-joint multiplier of the PD damping.
+    torque_noise: the paper randomizes "torque noise" at each simulation step without a range;
+      ours: every physics substep each motor applies its PD torque plus U[-1, 1] x this fraction
+      of its torque limit (2 %: up to 1.2 N m at the knee, 0.36 N m at the arms), clipped to the
+      limit. 0 turns it off.
     friction_initial: a curriculum on the floor friction (ours; the paper has none): the range
       ``(lo, hi)`` drawn from at the start of training, moving linearly to ``friction`` over
       ``friction_ramp_steps`` control steps of each env slot (as the penalty curriculum,
@@ -62,6 +67,7 @@ class DomainRandConfig:
   armature: tuple[float, float] = (0.005, 0.015)
   kp_scale: tuple[float, float] = (0.95, 1.05)
   kd_scale: tuple[float, float] = (0.95, 1.05)
+  torque_noise: float = 0.02
   friction_initial: tuple[float, float] | None = None
   friction_ramp_steps: int = 0
 

@@ -49,7 +49,8 @@ def _make_simulate(env):
           reward=state.reward, metrics=state.metrics, step=state.info["step"],
           env_steps=state.info["env_steps"],
           truncation=state.info["truncation"], fall=state.info["fall"],
-          torque=state.info["last_torque"], push=state.info["push"], obs=state.obs)
+          torque=state.info["last_torque"], ctrl=state.pipeline_state.ctrl,
+          push=state.info["push"], obs=state.obs)
       return state, trace
 
     last, trace = jax.lax.scan(body, state0, actions)
@@ -439,6 +440,26 @@ def test_reset_state(random_rollout, dr_env):
   np.testing.assert_array_equal(state0.info["step"], 0)
   assert set(state0.metrics) == {f"reward/{t}" for t in rewards.TERMS}
   assert len(np.unique(state0.info["dr"].friction)) == 4
+
+
+def test_torque_noise_is_applied_within_its_range_and_not_rewarded(random_rollout,
+                                                                   standing_rollout, dr_env):
+  """DR on: the last substep's applied torque is the commanded one plus U[-1, 1] x 2 % of the
+  limit (mean |noise| / bound 1/2 over 9,600 draws); the rewards' torque is the commanded one. DR
+  off (the nominal robot): applied = commanded exactly."""
+  act = np.array([dr_env.mj_model.actuator(j).id for j in T1.joints])
+  limit = np.array([T1.torque_limit[j] for j in T1.joints])
+  bound = dr_env.config.randomization.torque_noise * limit
+  assert dr_env.config.randomization.torque_noise == 0.02
+  _, _, trace = random_rollout
+  commanded, applied = trace["torque"], trace["ctrl"][..., act]
+  free = np.abs(commanded) < limit - bound  # away from the clip
+  noise = (applied - commanded)[free] / np.broadcast_to(bound, commanded.shape)[free]
+  assert noise.size > 5000 and np.abs(noise).max() <= 1.0 + 1e-4
+  assert 0.45 < np.abs(noise).mean() < 0.55
+  assert np.all(np.abs(applied) <= limit + 1e-4)
+  _, _, still = standing_rollout
+  np.testing.assert_array_equal(still["ctrl"][..., act], still["torque"])
 
 
 def test_standing_default_pose_zero_action(standing_rollout):
