@@ -77,6 +77,11 @@ class EnvConfig:
       input is every agent's own observation, zero-padded to the largest and stacked, so a
       per-agent critic sees only its own agent).
     temporal_director: feed the gait phase to the agents (ablation switch: zeros when off).
+    actor_history: control steps each agent observes (ours; the paper's actor sees 1, the
+      current step). With H > 1 an agent's observation is its last H per-step observations,
+      newest first (``[n_agents, H * frame]``; at reset the first frame repeated), so the shared
+      actor can read its velocity and the floor's grip from how its joints moved, as
+      humanoid-gym's stacked frames do. The critic is unchanged.
     fall_height: torso height (m) under which the episode ends as a fall.
     fall_tilt: |roll| or |pitch| (rad) above which the episode ends as a fall.
     commands, randomization, reward_scales, reward_params: see their classes.
@@ -97,6 +102,7 @@ class EnvConfig:
   agent_id: bool = True
   critic: str = "global"
   temporal_director: bool = True
+  actor_history: int = 1
   fall_height: float = 0.4
   fall_tilt: float = 1.0
   commands: CommandConfig = CommandConfig()
@@ -165,6 +171,8 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
                      f"{config.physics.sim_dt}")
   if config.episode_length < 1:
     raise ValueError(f"episode_length must be >= 1, got {config.episode_length}")
+  if config.actor_history < 1:
+    raise ValueError(f"actor_history must be >= 1 (control steps), got {config.actor_history}")
   params = config.reward_params
   for field in ("ramped_terms", "boosted_terms"):
     unknown = [t for t in getattr(params, field) if t not in rewards.TERMS]
@@ -261,6 +269,9 @@ class MashEnv(brax_base.Env):
       index = tuple(tuple(range(cursor + k * n, cursor + (k + 1) * n)) for k in range(len(limbs)))
       cursor += n * len(limbs)
       groups.append(agents.AgentGroup(name, tuple(l.name for l in limbs), obs_dim, n, index))
+    # One step's observation per agent (``observe``); the agents see actor_history of them.
+    self.frame_dims = {g.name: g.obs_dim for g in groups}
+    groups = [g._replace(obs_dim=g.obs_dim * config.actor_history) for g in groups]
     self.agent_groups: tuple[agents.AgentGroup, ...] = tuple(groups)
 
     # q_ref: per joint, which limb's phase drives it and with what multiplier.
@@ -281,7 +292,7 @@ class MashEnv(brax_base.Env):
     self._leg_limbs = np.array([self._limb_index[l.name] for l in spec.limbs if l.group == "legs"])
     if config.critic not in ("global", "local"):
       raise ValueError(f"critic '{config.critic}' is unknown; expected 'global' or 'local'")
-    self._local_dim = max(g.obs_dim for g in self.agent_groups)
+    self._local_dim = max(self.frame_dims.values())
     if config.critic == "local":
       self.critic_obs_size = agents.total_agents(self.agent_groups) * self._local_dim
     else:
@@ -418,7 +429,7 @@ class MashEnv(brax_base.Env):
     sensors = self.sensors(data)
     sensors["base_height"] = jnp.asarray(self.spec.base_height_target)
     contact = jnp.ones((2,))
-    obs = self.observe(sensors, info, contact)
+    obs = self.with_history(self.observe(sensors, info, contact), None)
     info["next_critic_obs"] = obs["critic"]
     metrics = {f"reward/{k}": jnp.zeros(()) for k in rewards.TERMS
                if getattr(self.config.reward_scales, k) != 0.0}
@@ -471,6 +482,24 @@ class MashEnv(brax_base.Env):
         s["lin_vel"], s["euler"], s["ang_vel"], info["push"],
         dr.friction[None], randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
         stance, contact])
+    return obs
+
+  def with_history(self, frames: dict[str, jax.Array],
+                   previous: dict[str, jax.Array] | None) -> dict[str, jax.Array]:
+    """The agents' observations from this step's ``frames`` (``observe``) and the ``previous``
+    step's observations (None at reset): ``{group: [n_agents, H * frame]}``, newest first, the
+    oldest frame dropped; at reset the frame repeated H times. The critic's is ``frames``'."""
+    h = self.config.actor_history
+    if h == 1:
+      return frames
+    obs = dict(frames)
+    for g in self.agent_groups:
+      frame = frames[g.name]
+      if previous is None:
+        obs[g.name] = jnp.tile(frame, (1, h))
+      else:
+        kept = previous[g.name][:, :self.frame_dims[g.name] * (h - 1)]
+        obs[g.name] = jnp.concatenate([frame, kept], axis=-1)
     return obs
 
   def step(self, state: State, action: jax.Array) -> State:
@@ -574,7 +603,8 @@ class MashEnv(brax_base.Env):
     # A blown-up state (NaN/inf) ends the episode and leaves no NaN behind: reward, reward terms,
     # observations and the terminal critic observation are zeroed (NaN * 0 is NaN downstream), and
     # info['nan_reset'] tells the trainer to mask the transition out of its update.
-    obs = jax.tree.map(lambda x: jnp.where(finite, x, 0.0), self.observe(s, info, contact))
+    obs = jax.tree.map(lambda x: jnp.where(finite, x, 0.0),
+                       self.with_history(self.observe(s, info, contact), state.obs))
     info["next_critic_obs"] = obs["critic"]
     reward = jnp.where(finite, reward, 0.0)
     metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in terms.items()}

@@ -118,6 +118,9 @@ class Layout(NamedTuple):
 def layout(env) -> Layout:
   """The gather tables reproducing ``MashEnv.observe`` for every agent group of ``env``."""
   cfg = env.config
+  if cfg.actor_history != 1:
+    raise ExportError(f"env.actor_history={cfg.actor_history}: the ONNX graph takes one step's "
+                      "signals, and a policy that reads several steps cannot be exported yet")
   J, A, L = env.n_joints, env.action_size, len(env.spec.limbs)
   oq, odq, oa = 0, J, 2 * J
   osin, ocos = 2 * J + A, 2 * J + A + L

@@ -61,8 +61,9 @@ def _make_simulate(env):
 
 @pytest.fixture(scope="session")
 def dr_env():
-  """Bipedal MASH env, domain randomization on, 1 s episodes."""
-  return env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH)
+  """Bipedal MASH env, domain randomization on, 1 s episodes, agents observing their last 2
+  steps (the nominal env below keeps the paper's 1, so both paths run in MJX)."""
+  return env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2)
 
 
 @pytest.fixture(scope="session")
@@ -216,6 +217,31 @@ def test_observation_sizes(task, partition, sizes, action_size):
   assert set(obs) == set(sizes)
   for name, shape in sizes.items():
     chex.assert_shape(obs[name], shape)
+
+
+def test_actor_history_stacks_the_last_steps_newest_first():
+  """actor_history 3: agents observe 3 x 32 (3 x 50 for the single PPO agent); at reset the frame
+  three times; after a step the new frame, then the two newest of the previous observation; the
+  critic keeps its one step. Export refuses such a policy in one line."""
+  from mash import export
+  env = env_lib.make_env("bipedal", "mash", actor_history=3)
+  assert env.observation_size == {"legs": (2, 96), "critic": (106,)}
+  assert env.frame_dims == {"legs": 32}
+  assert env_lib.make_env("bipedal", "ppo", actor_history=3).observation_size["body"] == (1, 150)
+  frames = [{"legs": np.full((2, 32), float(t)) + np.arange(2)[:, None] * 10,
+             "critic": np.full((106,), float(t))} for t in range(4)]
+  obs = jax.tree.map(np.asarray, env.with_history(frames[0], None))
+  np.testing.assert_array_equal(obs["legs"], np.tile(frames[0]["legs"], (1, 3)))
+  for t in (1, 2, 3):
+    obs = jax.tree.map(np.asarray, env.with_history(frames[t], obs))
+  # Newest first: steps 3, 2, 1 (step 0 has dropped out); each agent keeps its own rows.
+  np.testing.assert_array_equal(
+      obs["legs"], np.concatenate([frames[t]["legs"] for t in (3, 2, 1)], axis=-1))
+  np.testing.assert_array_equal(obs["critic"], frames[3]["critic"])
+  with pytest.raises(export.ExportError, match="actor_history=3"):
+    export.layout(env)
+  with pytest.raises(ValueError, match="actor_history must be >= 1"):
+    env_lib.check_config(env_lib.EnvConfig(actor_history=0))
 
 
 def test_leg_observation_layout(dr_env):
@@ -433,8 +459,9 @@ def test_randomize_apply_writes_fields(dr_env):
 def test_reset_state(random_rollout, dr_env):
   """Batched reset: obs shapes, home pose, step 0, one metric per reward term, DR per env."""
   state0, _, _ = random_rollout
-  chex.assert_shape(state0.obs["legs"], (4, 2, 32))
+  chex.assert_shape(state0.obs["legs"], (4, 2, 64))  # 2 steps of 32
   chex.assert_shape(state0.obs["critic"], (4, 106))
+  np.testing.assert_array_equal(state0.obs["legs"][..., 32:], state0.obs["legs"][..., :32])
   np.testing.assert_allclose(state0.pipeline_state.qpos,
                              np.broadcast_to(dr_env.mj_model.key("home").qpos, (4, dr_env.mj_model.nq)))
   np.testing.assert_array_equal(state0.info["step"], 0)
@@ -486,7 +513,7 @@ def test_random_rollout_is_finite(random_rollout, dr_env):
     assert np.all(np.isfinite(tr[name])), name
   for name, obs in tr["obs"].items():
     assert np.all(np.isfinite(obs)), name
-  chex.assert_shape(tr["obs"]["legs"], (RANDOM_STEPS, 4, 2, 32))
+  chex.assert_shape(tr["obs"]["legs"], (RANDOM_STEPS, 4, 2, 64))
   assert np.all(np.isfinite(np.asarray(last.pipeline_state.qpos)))
   # Applied torques within the motor limits; pushes within the configured ranges.
   tau_max = np.array([T1.torque_limit[j] for j in T1.joints])
@@ -495,6 +522,18 @@ def test_random_rollout_is_finite(random_rollout, dr_env):
   assert np.any(tr["push"] != 0.0)
   # By default a new push every control step (the paper: "at each simulation step"), not held.
   assert np.all(np.any(tr["push"][1:] != tr["push"][:-1], axis=-1))
+
+
+def test_step_carries_the_previous_observation_into_the_history(random_rollout):
+  """In the env step, an agent's older half is the newest half of its previous observation,
+  except on a step that reset the episode, where the fresh frame is repeated."""
+  state0, _, tr = random_rollout
+  legs = np.concatenate([state0.obs["legs"][None], tr["obs"]["legs"]])  # [T + 1, B, 2, 64]
+  done = tr["done"] > 0  # [T, B]
+  carried = legs[1:, ..., 32:] == legs[:-1, ..., :32]
+  assert np.all(carried[~done]) and done.any()
+  np.testing.assert_array_equal(legs[1:][done][..., 32:], legs[1:][done][..., :32])
+  assert not np.all(legs[1:, ..., 32:] == legs[1:, ..., :32])  # frames do differ
 
 
 def test_done_and_auto_reset(random_rollout, dr_env):
