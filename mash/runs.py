@@ -296,6 +296,19 @@ def _set_aside(out: Path, steps: tuple[int, ...]) -> None:
           file=sys.stderr, flush=True)
 
 
+# Calls after the first (which compiles) timed before the run says how long it will take.
+ETA_CALLS = 2
+
+
+def _expected_duration(call_s: list[float], iterations_per_call: int, remaining: int) -> str:
+  """One line: the measured seconds per iteration and when the ``remaining`` iterations end."""
+  per_it = float(np.median(call_s)) / iterations_per_call
+  left = per_it * remaining
+  end = time.strftime("%H:%M", time.localtime(time.time() + left))
+  return (f"timed: {per_it:.2f} s per iteration ({1 / per_it:.2f} it/s) after compiling; the "
+          f"remaining {remaining} iterations take about {left / 60:.0f} min (done around {end})")
+
+
 def _sync(name: str) -> None:
   """A barrier across processes (nothing in a one-process run)."""
   if jax.process_count() > 1:
@@ -474,6 +487,9 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
                                  fields=saved_fields) and primary:
             print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
                   f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
+        if primary and len(call_s) == ETA_CALLS and call < total_calls - 1:
+          bar.write(_expected_duration(call_s, cfg.train.iterations_per_call,
+                                       cfg.train.num_iterations - iteration), file=sys.stderr)
         sps = derived.env_steps_per_call / dt
         bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
         bar.update(len(rows))

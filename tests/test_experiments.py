@@ -280,3 +280,11 @@ def test_compare_report_from_synthetic_results():
   assert "- S_action: MASH lower than PPO" in md
   md, _ = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
   assert "- S_action: MASH not lower than PPO" in md
+
+
+def test_expected_duration_line_from_the_timed_calls():
+  """Calls of 4 s and 6 s with 10 iterations each: median 5 s = 0.5 s per iteration (2 it/s);
+  100 iterations left take 50 s, about 1 min."""
+  line = runs._expected_duration([4.0, 6.0], 10, 100)
+  assert line.startswith("timed: 0.50 s per iteration (2.00 it/s) after compiling; the remaining "
+                         "100 iterations take about 1 min (done around ")
