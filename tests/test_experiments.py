@@ -288,3 +288,11 @@ def test_expected_duration_line_from_the_timed_calls():
   line = runs._expected_duration([4.0, 6.0], 10, 100)
   assert line.startswith("timed: 0.50 s per iteration (2.00 it/s) after compiling; the remaining "
                          "100 iterations take about 1 min (done around ")
+
+
+def test_a_quiet_start():
+  """Importing the package prints nothing: no 'Failed to import warp' lines from MJX's probe of
+  its optional Warp backend."""
+  out = subprocess.run([sys.executable, "-c", "import mash.env, mash.runs, mash.evaluation"],
+                       capture_output=True, text=True, timeout=120)
+  assert out.returncode == 0 and out.stdout == "" and "warp" not in out.stderr, out
