@@ -69,6 +69,14 @@ def main(task: str, argv: list[str] | None = None) -> None:
   args = p.parse_args(argv)
 
   with common.user_errors():
+    if args.resume:
+      given = [name for name, value, default in (
+          ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
+          ("--ablation", args.ablation, "none"), ("--set", args.set, []),
+          ("--out", args.out, None)) if value != default]
+      if given and not (given == ["--out"] and str(args.out) == str(args.resume)):
+        raise common.UserError(f"--resume continues a run with its own config; {', '.join(given)} "
+                               "cannot be combined with it")
     if "MASH_LOCAL_PROCESSES" not in os.environ:  # not already one of the supervised processes
       n = _local_processes(task, args)
       if n > 1:
@@ -80,13 +88,6 @@ def main(task: str, argv: list[str] | None = None) -> None:
     preset, backend = common.default_preset()
     chosen = "given" if args.preset else f"chosen from the backend '{backend}'"
     if args.resume:
-      given = [name for name, value, default in (
-          ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
-          ("--ablation", args.ablation, "none"), ("--set", args.set, []),
-          ("--out", args.out, None)) if value != default]
-      if given and not (given == ["--out"] and str(args.out) == str(args.resume)):
-        raise common.UserError(f"--resume continues a run with its own config; {', '.join(given)} "
-                               "cannot be combined with it")
       cfg = runs.load_config(args.resume)
       if cfg.task != task:
         raise common.UserError(f"--resume {args.resume} is a '{cfg.task}' run, not '{task}'")
