@@ -19,6 +19,7 @@ Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -40,6 +41,13 @@ def _local_processes(task: str, args) -> int:
     cfg = experiment.make_config(task, args.algo, args.preset or common.default_preset()[0],
                                  args.seeds, args.ablation, args.set)
   n = common.local_processes_wanted(args, cfg.preset, cfg.seeds)
+  summary = Path(args.resume or "", "summary.json")
+  if args.resume and args.local_processes == "auto" and summary.is_file():
+    # A resume restores the env state as it was split: keep the run's own process count.
+    try:
+      n = int(json.loads(summary.read_text()).get("processes", n))
+    except (ValueError, TypeError, AttributeError):
+      pass
   if n > 1:
     if args.out and not args.resume and runs.is_run(Path(args.out)):
       raise common.UserError(f"'{args.out}' already holds a run; pass --resume {args.out} to "
