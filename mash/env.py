@@ -72,6 +72,12 @@ class EnvConfig:
       (kinematics; humanoid-gym's 0.17 lifts it 2.2 cm and, played open loop, keeps the foot on
       the ground 94 % of the time). ``RewardParams.feet_height_target`` matches it.
     arm_swing_amplitude: shoulder reference amplitude (rad), armswing only.
+    stride_reference: (ours; off by default, the reference bends the swing leg only, whatever the
+      command) add to the legs' reference the stride the commanded velocity needs: each foot
+      sweeps from ahead at touchdown to behind at lift-off by ``v * gait_cycle_s / 2`` (hip
+      pitch for vx, hip roll for vy, hip yaw for the yaw rate, the ankle keeping the sole level;
+      ``MashEnv.stride_offsets``), so the joint-position term, the reward's largest, rewards
+      walking at the command instead of taxing it.
     agent_id: append the one-hot agent id to each agent's observation (ablation switch).
     critic: 'global' (the 106-dim privileged state, MASH) or 'local' (IPPO ablation: the critic
       input is every agent's own observation, zero-padded to the largest and stacked, so a
@@ -99,6 +105,7 @@ class EnvConfig:
   gait_cycle_s: float = 0.64
   swing_amplitude: float = 0.25
   arm_swing_amplitude: float = 0.3
+  stride_reference: bool = False
   agent_id: bool = True
   critic: str = "global"
   temporal_director: bool = True
@@ -199,6 +206,52 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
       raise ValueError(f"randomization.{name} must be a range (lo, hi) with 0 < lo <= hi, got {r}")
 
 
+def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-3) -> np.ndarray:
+  """[J, 3] joint offset per unit foot displacement x, y (m) and foot yaw (rad), torso frame, at
+  the default pose: each leg's hip pitch, roll and yaw from finite differences of its foot's
+  position and yaw, and its ankle pitch and roll so that the sole keeps its tilt.
+
+  Raises:
+    robots.SpecError: a leg lacks one of those joints.
+  """
+  data = mujoco.MjData(model)
+  home = model.key("home").qpos.copy()
+
+  def foot_pose(limb, offsets):
+    data.qpos[:] = home
+    for name, delta in offsets.items():
+      data.qpos[model.jnt_qposadr[model.joint(name).id]] += delta
+    mujoco.mj_kinematics(model, data)
+    body = spec.feet[0] if limb.side > 0 else spec.feet[1]
+    mat = data.xmat[model.body(body).id].reshape(3, 3)
+    pitch = -np.arcsin(np.clip(mat[2, 0], -1, 1))
+    roll = np.arctan2(mat[2, 1], mat[2, 2])
+    yaw = np.arctan2(mat[1, 0], mat[0, 0])
+    return np.array([*data.xpos[model.body(body).id][:2], yaw, pitch, roll])
+
+  joint_pos = {j: i for i, j in enumerate(spec.joints)}
+  gain = np.zeros((len(spec.joints), 3))
+  for limb in spec.limbs:
+    if limb.group != "legs":
+      continue
+    by_role = {robots.joint_suffix(j): j for j in limb.joints}
+    missing = [r for r in ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Ankle_Pitch", "Ankle_Roll")
+               if r not in by_role]
+    if missing:
+      raise robots.SpecError(f"robot '{spec.name}': leg '{limb.name}' has no {missing[0]} joint "
+                             "for the stride reference")
+    base = foot_pose(limb, {})
+    d = {r: (foot_pose(limb, {by_role[r]: eps}) - base) / eps
+         for r in ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Ankle_Pitch", "Ankle_Roll")}
+    # axis 0 (x) -> hip pitch, 1 (y) -> hip roll, 2 (yaw) -> hip yaw; ankles undo the sole's tilt.
+    for axis, hip, ankle, tilt in ((0, "Hip_Pitch", "Ankle_Pitch", 3), (1, "Hip_Roll", "Ankle_Roll", 4)):
+      g = 1.0 / d[hip][axis]
+      gain[joint_pos[by_role[hip]], axis] = g
+      gain[joint_pos[by_role[ankle]], axis] = -g * d[hip][tilt] / d[ankle][tilt]
+    gain[joint_pos[by_role["Hip_Yaw"]], 2] = 1.0 / d["Hip_Yaw"][2]
+  return gain
+
+
 class MashEnv(brax_base.Env):
   """A humanoid whose limbs are agents (see module docstring)."""
 
@@ -290,6 +343,8 @@ class MashEnv(brax_base.Env):
     self._ref_limb = ref_limb
     self._ref_is_leg = jnp.array([spec.limbs[i].group == "legs" for i in ref_limb])
     self._leg_limbs = np.array([self._limb_index[l.name] for l in spec.limbs if l.group == "legs"])
+    self._stride_gain = (jnp.asarray(stride_gains(m, spec), jnp.float32)
+                         if config.stride_reference else None)
     if config.critic not in ("global", "local"):
       raise ValueError(f"critic '{config.critic}' is unknown; expected 'global' or 'local'")
     self._local_dim = max(self.frame_dims.values())
@@ -347,14 +402,34 @@ class MashEnv(brax_base.Env):
     """[L] temporal director T_i = sin(2 pi (phase + Delta_i)) as an angle 2 pi (phase + Delta_i)."""
     return 2 * jnp.pi * (phase + self._phase_offset)
 
-  def gait(self, phase: jax.Array, standing: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Reference joint offsets [J] and leg stance mask [2] for a gait phase (cycles)."""
-    s = jnp.sin(self.limb_phase(phase))
+  def gait(self, phase: jax.Array, standing: jax.Array,
+           command: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """Reference joint offsets [J] and leg stance mask [2] for a gait phase (cycles); with
+    ``config.stride_reference`` and the ``command`` [4], the legs' reference also strides at the
+    commanded velocity (:meth:`stride_offsets`)."""
+    angle = self.limb_phase(phase)
+    s = jnp.sin(angle)
     leg_ref = jnp.maximum(s, 0.0)  # legs: bend only in swing (sin > 0)
     per_joint = jnp.where(self._ref_is_leg, leg_ref[self._ref_limb], s[self._ref_limb])
-    q_ref = self._ref_scale * per_joint * (1.0 - standing)
+    q_ref = self._ref_scale * per_joint
+    if self._stride_gain is not None and command is not None:
+      q_ref = q_ref + self.stride_offsets(angle, command[1:])
+    q_ref = q_ref * (1.0 - standing)
     stance = jnp.where(standing > 0, 1.0, (s[self._leg_limbs] < 0.1).astype(jnp.float32))
     return q_ref, stance
+
+  def stride_offsets(self, angle: jax.Array, velocity: jax.Array) -> jax.Array:
+    """[J] leg joint offsets that carry each foot through a stride at ``velocity`` [3] (vx, vy m/s,
+    yaw rate rad/s, torso frame), for the limbs' phase angles ``angle`` [L].
+
+    A stance foot is fixed on the floor while the torso moves ``velocity * gait_cycle_s / 2``
+    over the half cycle of stance, so relative to the torso the foot goes from half that ahead at
+    touchdown (angle pi) to half behind at lift-off (angle 0) and back during the swing:
+    ``-cos(angle) * velocity * gait_cycle_s / 4``, turned into hip pitch / roll / yaw offsets by
+    the leg's kinematics at the default pose, with the ankle keeping the sole level.
+    """
+    reach = -jnp.cos(angle)[:, None] * velocity * (self.config.gait_cycle_s / 4.0)  # [L, 3]
+    return jnp.sum(self._stride_gain * reach[self._ref_limb], axis=-1)
 
   def sensors(self, data: mjx.Data) -> dict[str, jax.Array]:
     """Torso and joint quantities read from the MJX state."""
@@ -441,7 +516,7 @@ class MashEnv(brax_base.Env):
     """Agent observations per group and the privileged critic observation."""
     cfg = self.config
     command = info["command"]
-    q_ref, stance = self.gait(info["phase"], command[0])
+    q_ref, stance = self.gait(info["phase"], command[0], command)
     angle = self.limb_phase(info["phase"])
     phase_sc = jnp.stack([jnp.sin(angle), jnp.cos(angle)], axis=-1)  # [L, 2]
     if not cfg.temporal_director:
@@ -559,7 +634,7 @@ class MashEnv(brax_base.Env):
 
     s = self.sensors(data)
     contact, penalty_force = self.contacts(data)
-    q_ref, stance = self.gait(phase, command[0])
+    q_ref, stance = self.gait(phase, command[0], command)
     first_contact = contact * (1.0 - info["last_contact"])
     air_time = info["air_time"] + cfg.ctrl_dt
     feet_vel = (s["feet_xy"] - info["feet_xy"]) / cfg.ctrl_dt

@@ -108,7 +108,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     action = policy(state.obs)
     nxt = env.step(state, action)
     s = env.sensors(nxt.pipeline_state)
-    q_ref, _ = env.gait(nxt.info["phase"], nxt.info["command"][0])
+    q_ref, _ = env.gait(nxt.info["phase"], nxt.info["command"][0], nxt.info["command"])
     contact, _ = env.contacts(nxt.pipeline_state)
     qvel = nxt.pipeline_state.qvel
     # The free joint's linear velocity is in the world frame, its angular velocity in the torso's.

@@ -356,6 +356,45 @@ def test_reference_swing_reaches_the_clearance_height(dr_env):
   assert abs(lift - p.feet_height_target) < p.feet_height_tolerance, (lift, p.feet_height_target)
 
 
+def test_stride_reference_carries_the_feet_at_the_commanded_velocity():
+  """stride_reference: applying the reference at touchdown and at lift-off to the default pose
+  (forward kinematics), each foot goes from ahead to behind the torso by the distance the torso
+  covers in a half cycle, v * 0.64 / 2 (vx 0.4: 0.128 m; vy 0.2: 0.064 m), with the sole level
+  within 0.02 rad; a yaw rate turns the foot by w * 0.32. Off, or standing, nothing strides."""
+  env = env_lib.make_env("bipedal", "mash", stride_reference=True)
+  m = env.mj_model
+  data = mujoco.MjData(m)
+  home = m.key("home").qpos.copy()
+  qadr = [m.jnt_qposadr[m.joint(j).id] for j in T1.joints]
+
+  def foot(phase, command, body):
+    q_ref, _ = env.gait(jnp.asarray(phase), jnp.asarray(command[0]), jnp.asarray(command))
+    data.qpos[:] = home
+    data.qpos[qadr] += np.asarray(q_ref)
+    mujoco.mj_kinematics(m, data)
+    mat = data.xmat[m.body(body).id].reshape(3, 3)
+    pitch, roll = -np.arcsin(mat[2, 0]), np.arctan2(mat[2, 1], mat[2, 2])
+    return data.xpos[m.body(body).id].copy(), np.arctan2(mat[1, 0], mat[0, 0]), pitch, roll
+
+  # Left leg: touchdown at phase 0.5 (angle pi), lift-off at phase 0 (its swing is sin > 0).
+  # The swing bend is 0 at both (sin = 0), so only the stride moves the foot.
+  for command, axis, distance in (([0, 0.4, 0, 0], 0, 0.128), ([0, 0, 0.2, 0], 1, 0.064)):
+    ahead, _, p1, r1 = foot(0.5, command, T1.feet[0])
+    behind, _, p0, r0 = foot(0.0, command, T1.feet[0])
+    assert ahead[axis] - behind[axis] == pytest.approx(distance, rel=0.05)
+    assert max(abs(p1 - p0), abs(r1 - r0)) < 0.02
+  _, yaw1, _, _ = foot(0.5, [0, 0, 0, 0.5], T1.feet[0])
+  _, yaw0, _, _ = foot(0.0, [0, 0, 0, 0.5], T1.feet[0])
+  assert yaw1 - yaw0 == pytest.approx(0.5 * 0.32, rel=0.05)
+  # Standing, or the reference of the paper (off): no stride.
+  still = np.asarray(env.gait(jnp.asarray(0.5), jnp.asarray(1.0), jnp.array([1.0, 0, 0, 0]))[0])
+  np.testing.assert_array_equal(still, 0.0)
+  plain = env_lib.make_env("bipedal", "mash")
+  np.testing.assert_allclose(
+      plain.gait(jnp.asarray(0.3), jnp.asarray(0.0), jnp.array([0, 0.4, 0.1, 0.3]))[0],
+      env.gait(jnp.asarray(0.3), jnp.asarray(0.0), jnp.zeros(4))[0], atol=1e-7)
+
+
 def test_randomize_sample_in_ranges_and_varies():
   """vmapped sample over 256 keys: every draw inside its configured range, different across envs."""
   cfg = randomize.DomainRandConfig()
