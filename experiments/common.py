@@ -35,6 +35,49 @@ def user_errors() -> Iterator[None]:
     sys.exit(130)
 
 
+def _unwritable(folder) -> str | None:
+  """Why a file cannot be written in ``folder`` (made if missing, as the work would make it; the
+  probe file is removed), or None when it can."""
+  if folder.exists() and not folder.is_dir():
+    return "it is a file, not a folder"
+  try:
+    folder.mkdir(parents=True, exist_ok=True)
+    probe = folder / f".mash_write_probe_{os.getpid()}"
+    probe.write_bytes(b"")
+    probe.unlink()
+  except OSError as e:
+    return e.strerror or str(e)
+  return None
+
+
+def check_writable_dir(path: str | os.PathLike, flag: str) -> None:
+  """Checks, before any work, that files can be written in the folder ``path``.
+
+  Raises:
+    UserError: one line naming ``flag``, the path and the reason.
+  """
+  from pathlib import Path
+  reason = _unwritable(Path(path))
+  if reason:
+    raise UserError(f"{flag} '{path}' cannot be written: {reason}")
+
+
+def check_writable_file(path: str | os.PathLike, flag: str) -> None:
+  """Checks, before any work, that the file ``path`` can be written: not a folder, and its folder
+  takes a new file.
+
+  Raises:
+    UserError: one line naming ``flag``, the path and the reason.
+  """
+  from pathlib import Path
+  file = Path(path)
+  if file.is_dir():
+    raise UserError(f"{flag} '{file}' is a folder; expected a file path")
+  reason = _unwritable(file.parent)
+  if reason:
+    raise UserError(f"{flag} '{file}' cannot be written (folder '{file.parent}': {reason})")
+
+
 def exit_status(summary: dict) -> int:
   """0 for a run that finished; 128 + the signal number (130 SIGINT, 143 SIGTERM) for one that a
   signal stopped early, as shells report it, so scripts do not mistake it for a finished run."""

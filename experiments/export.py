@@ -27,6 +27,8 @@ def main(argv=None) -> None:
     out = Path(args.out) if args.out else Path(args.run) / "policy.onnx"
     if out.is_dir():
       raise common.UserError(f"--out '{out}' is a directory; expected a file path like policy.onnx")
+    runs.load_config(args.run)  # a missing run is named before the output path
+    common.check_writable_file(out, "--out")
     run = runs.load_run(args.run)
     try:
       parts = export.policy_parts(run, args.seed)

@@ -177,6 +177,9 @@ def main(argv=None) -> None:
 
     run_dir = Path(args.run)
     config = runs.load_config(run_dir)
+    common.check_writable_dir(run_dir / "sim2sim", "the run directory")
+    if args.video is not None:
+      common.check_writable_file(args.video, "--video")
     cfg = sim2sim.Sim2SimConfig(command_vx=args.command_vx, num_episodes=args.episodes,
                                 episode_s=args.seconds, sim_dt=args.sim_dt,
                                 iterations=args.iterations, seed=args.seed)
@@ -193,7 +196,10 @@ def main(argv=None) -> None:
       q_default = np.asarray(env._q_default)
 
       def hip_reference(phase, standing):
-        q_ref, _ = gait(np.asarray(phase, np.float32), np.asarray(standing, np.float32))
+        standing = np.asarray(standing, np.float32)
+        command = np.stack([standing, (1 - standing) * cfg.command_vx, 0 * standing,
+                            0 * standing], axis=-1)
+        q_ref, _ = gait(np.asarray(phase, np.float32), standing, command)
         return q_default[hips] + np.asarray(q_ref)[:, hips]
 
       say(f"MuJoCo C: {cfg.num_episodes} episode(s) x {cfg.episode_s:g} s at vx = "

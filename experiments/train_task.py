@@ -28,6 +28,23 @@ from pathlib import Path
 from experiments import common
 
 
+def _check_new_run(task: str, args) -> None:
+  """A new run's config, then its folder (refused when it holds a run or cannot be written), all
+  before anything else is built."""
+  from mash import experiment, runs
+  experiment.make_config(task, args.algo, args.preset or common.default_preset()[0], args.seeds,
+                         args.ablation, args.set)
+  if args.out is None:  # the default runs/<name>_<time>/ goes in runs/
+    common.check_writable_dir("runs", "the default run folder")
+    return
+  if Path(args.out).is_file():
+    raise common.UserError(f"'{args.out}' is a file, not a run directory")
+  if runs.is_run(Path(args.out)):
+    raise common.UserError(f"'{args.out}' already holds a run; pass --resume {args.out} to "
+                           "continue it, or choose another --out")
+  common.check_writable_dir(args.out, "--out")
+
+
 def _local_processes(task: str, args) -> int:
   """How many local processes to train with (``common.local_processes_wanted``); when more than
   one, the config, the run directory and the split of the env batch are checked here first, so a
@@ -49,9 +66,8 @@ def _local_processes(task: str, args) -> int:
     except (ValueError, TypeError, AttributeError):
       pass
   if n > 1:
-    if args.out and not args.resume and runs.is_run(Path(args.out)):
-      raise common.UserError(f"'{args.out}' already holds a run; pass --resume {args.out} to "
-                             "continue it, or choose another --out")
+    if not args.resume:
+      _check_new_run(task, args)
     try:
       train_config.derived(cfg.train, n)
     except ValueError as e:
@@ -91,6 +107,8 @@ def main(task: str, argv: list[str] | None = None) -> None:
         sys.exit(common.run_local_processes(f"experiments.{task}",
                                             sys.argv[1:] if argv is None else list(argv), n))
     primary = common.join_processes(args)  # before any other JAX work
+    if not args.resume and not common.joined_by_hand(args):
+      _check_new_run(task, args)
     say = print if primary else (lambda *a, **k: None)
     from mash import experiment, runs
     preset, backend = common.default_preset()

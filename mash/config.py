@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from typing import Any, Mapping, NamedTuple
 
 
@@ -140,8 +141,26 @@ def derived(config: TrainConfig, num_devices: int = 1) -> Derived:
   if config.learning_rate_schedule not in LEARNING_RATE_SCHEDULES:
     raise ValueError(f"TrainConfig.learning_rate_schedule '{config.learning_rate_schedule}' is "
                      f"unknown; expected one of {', '.join(LEARNING_RATE_SCHEDULES)}.")
-  if config.desired_kl <= 0:
-    raise ValueError(f'TrainConfig.desired_kl must be > 0, got {config.desired_kl}.')
+  checks = (  # (field, ok, what is expected); `not (x > 0)` etc. also refuse NaN
+      ('learning_rate', 0 < config.learning_rate < math.inf, 'a finite number > 0'),
+      ('desired_kl', 0 < config.desired_kl < math.inf, 'a finite number > 0'),
+      ('gamma', 0 < config.gamma <= 1, 'in (0, 1]'),
+      ('gae_lambda', 0 <= config.gae_lambda <= 1, 'in [0, 1]'),
+      ('clip_epsilon', 0 < config.clip_epsilon < math.inf, 'a finite number > 0'),
+      ('value_clip', -math.inf < config.value_clip < math.inf, 'finite (<= 0: no value clip)'),
+      ('entropy_coef', 0 <= config.entropy_coef < math.inf, 'a finite number >= 0'),
+      ('value_loss_coef', 0 <= config.value_loss_coef < math.inf, 'a finite number >= 0'),
+      ('max_grad_norm', 0 < config.max_grad_norm < math.inf, 'a finite number > 0'),
+      ('init_log_std', -20 <= config.init_log_std <= 5, 'in [-20, 5] (a log standard deviation)'),
+      ('obs_clip', 0 < config.obs_clip < math.inf, 'a finite number > 0'),
+  )
+  for name, ok, expected in checks:
+    if not ok:
+      raise ValueError(f'TrainConfig.{name} must be {expected}, got {getattr(config, name)}.')
+  for name in ('actor_hidden', 'critic_hidden'):
+    sizes = getattr(config, name)
+    if not sizes or any(int(h) != h or h < 1 for h in sizes):
+      raise ValueError(f'TrainConfig.{name} must be one or more layer sizes >= 1, got {sizes}.')
   if num_devices < 1 or config.num_envs % num_devices:
     raise ValueError(f'TrainConfig.num_envs={config.num_envs} must be divisible by the number of '
                      f'devices ({num_devices}).')

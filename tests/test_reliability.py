@@ -170,8 +170,8 @@ def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
 
 def _main_error(capsys, module: str, argv: list[str]) -> str:
   """Runs an entry point in this process; returns its one error line (exit status 2)."""
-  if module == "evaluate":
-    from experiments.evaluate import main
+  if module in ("evaluate", "export", "sim2sim"):
+    main = __import__(f"experiments.{module}", fromlist=["main"]).main
     run = lambda: main(argv)
   else:
     from experiments.train_task import main
@@ -280,6 +280,29 @@ def test_cli_bad_run_directories_are_one_line(capsys, smoke_run, tmp_path):
   line = _main_error(capsys, "bipedal", ["--resume", str(fresh)])
   assert "has no complete checkpoint" in line
   assert _tree_digest(fresh) == before
+
+
+@pytest.mark.parametrize("command, argv, words", [
+    ("bipedal", ["--preset", "smoke", "--set", "train.learning_rate=nan"],
+     "TrainConfig.learning_rate must be a finite number > 0, got nan"),
+    ("bipedal", ["--preset", "smoke", "--set", "train.actor_hidden=0"],
+     "TrainConfig.actor_hidden must be one or more layer sizes >= 1"),
+    ("bipedal", ["--preset", "smoke", "--set", "train.gamma=inf"], "TrainConfig.gamma must be in"),
+    ("bipedal", ["--preset", "smoke", "--out", "/proc/forbidden"],
+     "--out '/proc/forbidden' cannot be written"),
+    ("export", ["--run", "SMOKE", "--out", "/proc/x.onnx"],
+     "--out '/proc/x.onnx' cannot be written (folder '/proc'"),
+    ("sim2sim", ["--run", "SMOKE", "--video", "/proc/x.mp4"],
+     "--video '/proc/x.mp4' cannot be written (folder '/proc'"),
+])
+def test_bad_numbers_and_unwritable_outputs_are_one_line_before_any_work(
+    capsys, smoke_run, command, argv, words):
+  """Issue 27's first five cases: each ends in one error line before any work, nothing written."""
+  before = _tree_digest(smoke_run)
+  argv = [str(smoke_run) if a == "SMOKE" else a for a in argv]
+  line = _main_error(capsys, command, argv)
+  assert words in line, line
+  assert _tree_digest(smoke_run) == before
 
 
 def test_out_holding_a_run_is_refused_and_untouched(smoke_run, smoke_config):
