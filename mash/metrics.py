@@ -37,238 +37,238 @@ __all__ = [
 
 
 def _as_array(x, name: str, ndims: Sequence[int], expected: str) -> np.ndarray:
-    """Converts ``x`` to a float64 array and checks its rank."""
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim not in ndims:
-        raise ValueError(f"`{name}` must have shape {expected}, got shape {arr.shape}")
-    if arr.size == 0:
-        raise ValueError(f"`{name}` must be non-empty with shape {expected}, got {arr.shape}")
-    return arr
+  """Converts ``x`` to a float64 array and checks its rank."""
+  arr = np.asarray(x, dtype=np.float64)
+  if arr.ndim not in ndims:
+    raise ValueError(f"`{name}` must have shape {expected}, got shape {arr.shape}")
+  if arr.size == 0:
+    raise ValueError(f"`{name}` must be non-empty with shape {expected}, got {arr.shape}")
+  return arr
 
 
 def convergence_iteration(rewards, window: int | None = None) -> tuple[int, dict]:
-    """Iterations to convergence, ``T_conv``.
+  """Iterations to convergence, ``T_conv``.
 
-    The curve is smoothed with a *trailing* moving average: ``smoothed[i]`` is the
-    mean of ``rewards[max(0, i - window + 1) : i + 1]`` (the first ``window - 1``
-    points average over the shorter available prefix). The asymptote is the mean
-    of the *raw* rewards over the last 10% of iterations (at least one).
-    ``T_conv`` is the first index ``i`` such that ``smoothed[j] >= threshold`` for
-    every ``j >= i``, where ``threshold = asymptote - 0.05 * |asymptote|``. For a
-    positive asymptote this is exactly ``0.95 * asymptote``; for a negative one it
-    means "within 5% of ``|asymptote|`` below it" (``0.95 * asymptote`` would lie
-    *above* a negative asymptote and be unreachable).
+  The curve is smoothed with a *trailing* moving average: ``smoothed[i]`` is the
+  mean of ``rewards[max(0, i - window + 1) : i + 1]`` (the first ``window - 1``
+  points average over the shorter available prefix). The asymptote is the mean
+  of the *raw* rewards over the last 10% of iterations (at least one).
+  ``T_conv`` is the first index ``i`` such that ``smoothed[j] >= threshold`` for
+  every ``j >= i``, where ``threshold = asymptote - 0.05 * |asymptote|``. For a
+  positive asymptote this is exactly ``0.95 * asymptote``; for a negative one it
+  means "within 5% of ``|asymptote|`` below it" (``0.95 * asymptote`` would lie
+  *above* a negative asymptote and be unreachable).
 
-    Args:
-      rewards: Mean episode reward per training iteration, shape ``[N]``.
-      window: Moving-average length in iterations. Defaults to
-        ``max(1, N // 50)``.
+  Args:
+    rewards: Mean episode reward per training iteration, shape ``[N]``.
+    window: Moving-average length in iterations. Defaults to
+      ``max(1, N // 50)``.
 
-    Returns:
-      ``(T_conv, info)``, where ``info`` has keys ``asymptote``, ``window``,
-      ``threshold`` and ``converged``. If even the last smoothed value is below
-      the threshold, ``T_conv = N`` and ``converged`` is ``False``.
+  Returns:
+    ``(T_conv, info)``, where ``info`` has keys ``asymptote``, ``window``,
+    ``threshold`` and ``converged``. If even the last smoothed value is below
+    the threshold, ``T_conv = N`` and ``converged`` is ``False``.
 
-    Raises:
-      ValueError: If ``rewards`` is not a non-empty 1-D array or ``window < 1``.
-    """
-    r = _as_array(rewards, "rewards", (1,), "[N] (N >= 1)")
-    n = r.shape[0]
-    window = max(1, n // 50) if window is None else int(window)
-    if window < 1:
-        raise ValueError(f"`window` must be >= 1, got {window}")
-    csum = np.concatenate([[0.0], np.cumsum(r)])
-    idx = np.arange(n)
-    start = np.maximum(0, idx - window + 1)
-    smoothed = (csum[idx + 1] - csum[start]) / (idx + 1 - start)
-    tail = max(1, int(round(0.1 * n)))
-    asymptote = float(np.mean(r[-tail:]))
-    threshold = asymptote - 0.05 * abs(asymptote)
-    below = np.nonzero(smoothed < threshold)[0]
-    t_conv = 0 if below.size == 0 else int(below[-1]) + 1
-    info = {
-        "asymptote": asymptote,
-        "window": window,
-        "threshold": float(threshold),
-        "converged": t_conv < n,
-    }
-    return t_conv, info
+  Raises:
+    ValueError: If ``rewards`` is not a non-empty 1-D array or ``window < 1``.
+  """
+  r = _as_array(rewards, "rewards", (1,), "[N] (N >= 1)")
+  n = r.shape[0]
+  window = max(1, n // 50) if window is None else int(window)
+  if window < 1:
+    raise ValueError(f"`window` must be >= 1, got {window}")
+  csum = np.concatenate([[0.0], np.cumsum(r)])
+  idx = np.arange(n)
+  start = np.maximum(0, idx - window + 1)
+  smoothed = (csum[idx + 1] - csum[start]) / (idx + 1 - start)
+  tail = max(1, int(round(0.1 * n)))
+  asymptote = float(np.mean(r[-tail:]))
+  threshold = asymptote - 0.05 * abs(asymptote)
+  below = np.nonzero(smoothed < threshold)[0]
+  t_conv = 0 if below.size == 0 else int(below[-1]) + 1
+  info = {
+      "asymptote": asymptote,
+      "window": window,
+      "threshold": float(threshold),
+      "converged": t_conv < n,
+  }
+  return t_conv, info
 
 
 def _smoothness(actions, order: int) -> float:
-    a = _as_array(actions, "actions", (2, 3), "[T, A] or [E, T, A]")
-    if a.ndim == 2:
-        a = a[None]
-    t = a.shape[1]
-    d = np.diff(a, n=order, axis=1)  # [E, T - order, A]; empty if T <= order
-    per_episode = np.sum(d**2, axis=(1, 2)) / t
-    return float(np.mean(per_episode))
+  a = _as_array(actions, "actions", (2, 3), "[T, A] or [E, T, A]")
+  if a.ndim == 2:
+    a = a[None]
+  t = a.shape[1]
+  d = np.diff(a, n=order, axis=1)  # [E, T - order, A]; empty if T <= order
+  per_episode = np.sum(d**2, axis=(1, 2)) / t
+  return float(np.mean(per_episode))
 
 
 def action_smoothness(actions) -> float:
-    """First-difference action smoothness, ``S_action``.
+  """First-difference action smoothness, ``S_action``.
 
-    ``S_action = (1/T) * sum_{t=1}^{T-1} sum_i (a_{i,t+1} - a_{i,t})^2``; note the
-    normalisation is ``1/T`` (not ``1/(T-1)``), as in the paper.
+  ``S_action = (1/T) * sum_{t=1}^{T-1} sum_i (a_{i,t+1} - a_{i,t})^2``; note the
+  normalisation is ``1/T`` (not ``1/(T-1)``), as in the paper.
 
-    Args:
-      actions: Actions, shape ``[T, A]`` or ``[E, T, A]`` (then averaged over
-        the ``E`` episodes).
+  Args:
+    actions: Actions, shape ``[T, A]`` or ``[E, T, A]`` (then averaged over
+      the ``E`` episodes).
 
-    Returns:
-      The metric as a Python float (0 when ``T < 2``).
-    """
-    return _smoothness(actions, 1)
+  Returns:
+    The metric as a Python float (0 when ``T < 2``).
+  """
+  return _smoothness(actions, 1)
 
 
 def action_smoothness_2nd(actions) -> float:
-    """Second-difference action smoothness, ``S_action_2nd``.
+  """Second-difference action smoothness, ``S_action_2nd``.
 
-    ``(1/T) * sum_{t=2}^{T-1} sum_i (a_{i,t+1} - 2 a_{i,t} + a_{i,t-1})^2``.
+  ``(1/T) * sum_{t=2}^{T-1} sum_i (a_{i,t+1} - 2 a_{i,t} + a_{i,t-1})^2``.
 
-    Args:
-      actions: Actions, shape ``[T, A]`` or ``[E, T, A]`` (then averaged over
-        the ``E`` episodes).
+  Args:
+    actions: Actions, shape ``[T, A]`` or ``[E, T, A]`` (then averaged over
+      the ``E`` episodes).
 
-    Returns:
-      The metric as a Python float (0 when ``T < 3``).
-    """
-    return _smoothness(actions, 2)
+  Returns:
+    The metric as a Python float (0 when ``T < 3``).
+  """
+  return _smoothness(actions, 2)
 
 
 def torso_stability(base_height, euler, w_h: float = 1.0, w_theta: float = 1.0) -> float:
-    """Torso stability, ``S_torso = w_h Var(h) + w_theta sum_k Var(theta_k)``.
+  """Torso stability, ``S_torso = w_h Var(h) + w_theta sum_k Var(theta_k)``.
 
-    Variances are population variances (``ddof=0``) over time; ``k`` runs over
-    roll, pitch and yaw. Yaw (``euler[..., 2]``) is unwrapped along time with
-    ``np.unwrap`` first so a heading crossing +-pi does not inflate the variance.
+  Variances are population variances (``ddof=0``) over time; ``k`` runs over
+  roll, pitch and yaw. Yaw (``euler[..., 2]``) is unwrapped along time with
+  ``np.unwrap`` first so a heading crossing +-pi does not inflate the variance.
 
-    Args:
-      base_height: Torso height, shape ``[T]`` or ``[E, T]``.
-      euler: Torso (roll, pitch, yaw) in radians, shape ``[T, 3]`` or
-        ``[E, T, 3]``, matching ``base_height``.
-      w_h: Weight of the height variance.
-      w_theta: Weight of the summed angle variances.
+  Args:
+    base_height: Torso height, shape ``[T]`` or ``[E, T]``.
+    euler: Torso (roll, pitch, yaw) in radians, shape ``[T, 3]`` or
+      ``[E, T, 3]``, matching ``base_height``.
+    w_h: Weight of the height variance.
+    w_theta: Weight of the summed angle variances.
 
-    Returns:
-      The metric as a Python float, averaged over episodes when batched.
-    """
-    h = _as_array(base_height, "base_height", (1, 2), "[T] or [E, T]")
-    e = np.asarray(euler, dtype=np.float64)
-    if e.shape != h.shape + (3,):
-        raise ValueError(
-            f"`euler` must have shape {h.shape + (3,)} ([T, 3] or [E, T, 3] matching "
-            f"`base_height`), got shape {e.shape}"
-        )
-    if h.ndim == 1:
-        h, e = h[None], e[None]
-    e = e.copy()
-    e[..., 2] = np.unwrap(e[..., 2], axis=1)
-    per_episode = w_h * np.var(h, axis=1) + w_theta * np.sum(np.var(e, axis=1), axis=-1)
-    return float(np.mean(per_episode))
+  Returns:
+    The metric as a Python float, averaged over episodes when batched.
+  """
+  h = _as_array(base_height, "base_height", (1, 2), "[T] or [E, T]")
+  e = np.asarray(euler, dtype=np.float64)
+  if e.shape != h.shape + (3,):
+    raise ValueError(
+        f"`euler` must have shape {h.shape + (3,)} ([T, 3] or [E, T, 3] matching "
+        f"`base_height`), got shape {e.shape}"
+    )
+  if h.ndim == 1:
+    h, e = h[None], e[None]
+  e = e.copy()
+  e[..., 2] = np.unwrap(e[..., 2], axis=1)
+  per_episode = w_h * np.var(h, axis=1) + w_theta * np.sum(np.var(e, axis=1), axis=-1)
+  return float(np.mean(per_episode))
 
 
 def _wrap(x: np.ndarray) -> np.ndarray:
-    """Wraps angles to ``(-pi, pi]``."""
-    return np.pi - np.mod(np.pi - x, 2.0 * np.pi)
+  """Wraps angles to ``(-pi, pi]``."""
+  return np.pi - np.mod(np.pi - x, 2.0 * np.pi)
 
 
 def limb_coordination(hip_left, hip_right, target: float = np.pi) -> float:
-    """Limb coordination, ``C_limb`` (radians, lower is better).
+  """Limb coordination, ``C_limb`` (radians, lower is better).
 
-    The instantaneous phase of each mean-removed hip-pitch trajectory is the
-    angle of its analytic signal (``scipy.signal.hilbert``, FFT-based over the
-    whole trajectory, no edge trimming). Then
-    ``C_limb = mean_t |wrap(phi_left - phi_right - target)|`` with ``wrap`` onto
-    ``(-pi, pi]``. The Hilbert transform is exact for trajectories spanning an
-    integer number of periods; otherwise the first/last few samples carry edge
-    error, which is negligible for long rollouts.
+  The instantaneous phase of each mean-removed hip-pitch trajectory is the
+  angle of its analytic signal (``scipy.signal.hilbert``, FFT-based over the
+  whole trajectory, no edge trimming). Then
+  ``C_limb = mean_t |wrap(phi_left - phi_right - target)|`` with ``wrap`` onto
+  ``(-pi, pi]``. The Hilbert transform is exact for trajectories spanning an
+  integer number of periods; otherwise the first/last few samples carry edge
+  error, which is negligible for long rollouts.
 
-    Args:
-      hip_left: Left hip-pitch angle, shape ``[T]`` or ``[E, T]``.
-      hip_right: Right hip-pitch angle, same shape as ``hip_left``.
-      target: Desired phase difference; ``pi`` for an alternating gait.
+  Args:
+    hip_left: Left hip-pitch angle, shape ``[T]`` or ``[E, T]``.
+    hip_right: Right hip-pitch angle, same shape as ``hip_left``.
+    target: Desired phase difference; ``pi`` for an alternating gait.
 
-    Returns:
-      The metric as a Python float in ``[0, pi]``, averaged over episodes.
-    """
-    left = _as_array(hip_left, "hip_left", (1, 2), "[T] or [E, T]")
-    right = np.asarray(hip_right, dtype=np.float64)
-    if right.shape != left.shape:
-        raise ValueError(
-            f"`hip_right` must have the same shape as `hip_left` {left.shape}, got {right.shape}"
-        )
-    if left.ndim == 1:
-        left, right = left[None], right[None]
+  Returns:
+    The metric as a Python float in ``[0, pi]``, averaged over episodes.
+  """
+  left = _as_array(hip_left, "hip_left", (1, 2), "[T] or [E, T]")
+  right = np.asarray(hip_right, dtype=np.float64)
+  if right.shape != left.shape:
+    raise ValueError(
+        f"`hip_right` must have the same shape as `hip_left` {left.shape}, got {right.shape}"
+    )
+  if left.ndim == 1:
+    left, right = left[None], right[None]
 
-    def phase(x: np.ndarray) -> np.ndarray:
-        return np.angle(signal.hilbert(x - x.mean(axis=1, keepdims=True), axis=1))
+  def phase(x: np.ndarray) -> np.ndarray:
+    return np.angle(signal.hilbert(x - x.mean(axis=1, keepdims=True), axis=1))
 
-    dev = np.abs(_wrap(phase(left) - phase(right) - target))
-    return float(np.mean(dev))
+  dev = np.abs(_wrap(phase(left) - phase(right) - target))
+  return float(np.mean(dev))
 
 
 def all_metrics(trajectories: Mapping[str, np.ndarray], rewards_per_iteration=None) -> dict:
-    """Computes every paper metric from evaluation rollouts.
+  """Computes every paper metric from evaluation rollouts.
 
-    Args:
-      trajectories: Dict with ``actions [E, T, A]``, ``base_height [E, T]``,
-        ``euler [E, T, 3]`` and ``hip_pitch [E, T, 2]`` (left, right).
-      rewards_per_iteration: Optional training curve ``[N]``; when given,
-        ``T_conv`` is included.
+  Args:
+    trajectories: Dict with ``actions [E, T, A]``, ``base_height [E, T]``,
+      ``euler [E, T, 3]`` and ``hip_pitch [E, T, 2]`` (left, right).
+    rewards_per_iteration: Optional training curve ``[N]``; when given,
+      ``T_conv`` is included.
 
-    Returns:
-      Dict of Python floats with keys ``S_action``, ``S_action_2nd``,
-      ``S_torso``, ``C_limb`` and, if rewards are given, ``T_conv``.
-    """
-    missing = {"actions", "base_height", "euler", "hip_pitch"} - set(trajectories)
-    if missing:
-        raise ValueError(f"`trajectories` is missing keys {sorted(missing)}")
-    hip = np.asarray(trajectories["hip_pitch"], dtype=np.float64)
-    if hip.ndim not in (2, 3) or hip.shape[-1] != 2:
-        raise ValueError(f"`hip_pitch` must have shape [E, T, 2], got shape {hip.shape}")
-    out = {
-        "S_action": action_smoothness(trajectories["actions"]),
-        "S_action_2nd": action_smoothness_2nd(trajectories["actions"]),
-        "S_torso": torso_stability(trajectories["base_height"], trajectories["euler"]),
-        "C_limb": limb_coordination(hip[..., 0], hip[..., 1]),
-    }
-    if rewards_per_iteration is not None:
-        out["T_conv"] = float(convergence_iteration(rewards_per_iteration)[0])
-    return out
+  Returns:
+    Dict of Python floats with keys ``S_action``, ``S_action_2nd``,
+    ``S_torso``, ``C_limb`` and, if rewards are given, ``T_conv``.
+  """
+  missing = {"actions", "base_height", "euler", "hip_pitch"} - set(trajectories)
+  if missing:
+    raise ValueError(f"`trajectories` is missing keys {sorted(missing)}")
+  hip = np.asarray(trajectories["hip_pitch"], dtype=np.float64)
+  if hip.ndim not in (2, 3) or hip.shape[-1] != 2:
+    raise ValueError(f"`hip_pitch` must have shape [E, T, 2], got shape {hip.shape}")
+  out = {
+      "S_action": action_smoothness(trajectories["actions"]),
+      "S_action_2nd": action_smoothness_2nd(trajectories["actions"]),
+      "S_torso": torso_stability(trajectories["base_height"], trajectories["euler"]),
+      "C_limb": limb_coordination(hip[..., 0], hip[..., 1]),
+  }
+  if rewards_per_iteration is not None:
+    out["T_conv"] = float(convergence_iteration(rewards_per_iteration)[0])
+  return out
 
 
 def seed_summary(values: Sequence[float]) -> dict:
-    """Mean and sample standard deviation (``ddof=1``) across seeds.
+  """Mean and sample standard deviation (``ddof=1``) across seeds.
 
-    Args:
-      values: One metric value per seed, shape ``[S]``.
+  Args:
+    values: One metric value per seed, shape ``[S]``.
 
-    Returns:
-      ``{"mean", "std", "n"}``; ``std`` is 0.0 for a single seed, and ``mean``
-      and ``std`` are NaN when ``values`` is empty.
-    """
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    n = int(v.size)
-    if n == 0:
-        return {"mean": float("nan"), "std": float("nan"), "n": 0}
-    std = float(np.std(v, ddof=1)) if n > 1 else 0.0
-    return {"mean": float(np.mean(v)), "std": std, "n": n}
+  Returns:
+    ``{"mean", "std", "n"}``; ``std`` is 0.0 for a single seed, and ``mean``
+    and ``std`` are NaN when ``values`` is empty.
+  """
+  v = np.asarray(values, dtype=np.float64).reshape(-1)
+  n = int(v.size)
+  if n == 0:
+    return {"mean": float("nan"), "std": float("nan"), "n": 0}
+  std = float(np.std(v, ddof=1)) if n > 1 else 0.0
+  return {"mean": float(np.mean(v)), "std": std, "n": n}
 
 
 def welch_ttest(a: Sequence[float], b: Sequence[float]) -> dict:
-    """Welch's unequal-variance two-sample t-test (e.g. MASH vs PPO seeds).
+  """Welch's unequal-variance two-sample t-test (e.g. MASH vs PPO seeds).
 
-    Args:
-      a: Per-seed values of the first method, shape ``[S_a]``.
-      b: Per-seed values of the second method, shape ``[S_b]``.
+  Args:
+    a: Per-seed values of the first method, shape ``[S_a]``.
+    b: Per-seed values of the second method, shape ``[S_b]``.
 
-    Returns:
-      ``{"t", "p"}`` (two-sided); both NaN when either sample has < 2 values.
-    """
-    a = np.asarray(a, dtype=np.float64).reshape(-1)
-    b = np.asarray(b, dtype=np.float64).reshape(-1)
-    if a.size < 2 or b.size < 2:
-        return {"t": float("nan"), "p": float("nan")}
-    res = stats.ttest_ind(a, b, equal_var=False)
-    return {"t": float(res.statistic), "p": float(res.pvalue)}
+  Returns:
+    ``{"t", "p"}`` (two-sided); both NaN when either sample has < 2 values.
+  """
+  a = np.asarray(a, dtype=np.float64).reshape(-1)
+  b = np.asarray(b, dtype=np.float64).reshape(-1)
+  if a.size < 2 or b.size < 2:
+    return {"t": float("nan"), "p": float("nan")}
+  res = stats.ttest_ind(a, b, equal_var=False)
+  return {"t": float(res.statistic), "p": float(res.pvalue)}

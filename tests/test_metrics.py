@@ -15,153 +15,153 @@ W = 2 * np.pi * TT / PERIOD
 
 # ----------------------------------------------------------------- C_limb
 def test_c_limb_antiphase_is_zero():
-    # phi_L - phi_R = pi exactly; minus target pi -> 0.
-    c = metrics.limb_coordination(0.3 + np.sin(W), -0.2 - np.sin(W))
-    assert c < 1e-2
+  # phi_L - phi_R = pi exactly; minus target pi -> 0.
+  c = metrics.limb_coordination(0.3 + np.sin(W), -0.2 - np.sin(W))
+  assert c < 1e-2
 
 
 def test_c_limb_inphase_is_pi():
-    # phi_L - phi_R = 0; |wrap(0 - pi)| = |pi| = pi.
-    c = metrics.limb_coordination(np.sin(W), 2.0 * np.sin(W))
-    assert c == pytest.approx(np.pi, abs=1e-2)
+  # phi_L - phi_R = 0; |wrap(0 - pi)| = |pi| = pi.
+  c = metrics.limb_coordination(np.sin(W), 2.0 * np.sin(W))
+  assert c == pytest.approx(np.pi, abs=1e-2)
 
 
 def test_c_limb_quarter_phase():
-    # Right lags by pi/2 -> diff pi/2; |wrap(pi/2 - pi)| = pi/2.
-    c = metrics.limb_coordination(np.sin(W), np.sin(W - np.pi / 2))
-    assert c == pytest.approx(np.pi / 2, abs=1e-2)
+  # Right lags by pi/2 -> diff pi/2; |wrap(pi/2 - pi)| = pi/2.
+  c = metrics.limb_coordination(np.sin(W), np.sin(W - np.pi / 2))
+  assert c == pytest.approx(np.pi / 2, abs=1e-2)
 
 
 def test_c_limb_batched_is_mean_over_episodes():
-    # Episode 0 antiphase (0), episode 1 in phase (pi) -> mean pi/2.
-    left = np.stack([np.sin(W), np.sin(W)])
-    right = np.stack([-np.sin(W), np.sin(W)])
-    assert metrics.limb_coordination(left, right) == pytest.approx(np.pi / 2, abs=1e-2)
+  # Episode 0 antiphase (0), episode 1 in phase (pi) -> mean pi/2.
+  left = np.stack([np.sin(W), np.sin(W)])
+  right = np.stack([-np.sin(W), np.sin(W)])
+  assert metrics.limb_coordination(left, right) == pytest.approx(np.pi / 2, abs=1e-2)
 
 
 # --------------------------------------------------------------- S_action
 def test_constant_action_is_zero():
-    a = np.full((50, 4), 0.7)
-    assert metrics.action_smoothness(a) == 0.0
-    assert metrics.action_smoothness_2nd(a) == 0.0
+  a = np.full((50, 4), 0.7)
+  assert metrics.action_smoothness(a) == 0.0
+  assert metrics.action_smoothness_2nd(a) == 0.0
 
 
 def test_action_smoothness_hand_computed():
-    # diffs 1, 2 -> (1 + 4) / T=3 = 5/3 (1/T, not 1/(T-1)).
-    a = np.array([[0.0], [1.0], [3.0]])
-    assert metrics.action_smoothness(a) == pytest.approx(5.0 / 3.0)
-    # 2nd diff: 3 - 2*1 + 0 = 1 -> 1 / 3.
-    assert metrics.action_smoothness_2nd(a) == pytest.approx(1.0 / 3.0)
+  # diffs 1, 2 -> (1 + 4) / T=3 = 5/3 (1/T, not 1/(T-1)).
+  a = np.array([[0.0], [1.0], [3.0]])
+  assert metrics.action_smoothness(a) == pytest.approx(5.0 / 3.0)
+  # 2nd diff: 3 - 2*1 + 0 = 1 -> 1 / 3.
+  assert metrics.action_smoothness_2nd(a) == pytest.approx(1.0 / 3.0)
 
 
 def test_action_smoothness_sums_over_dims():
-    # dim0 diffs 1,2 -> 5; dim1 diffs -1,-1 -> 2; total 7 / T=3.
-    a = np.array([[0.0, 0.0], [1.0, -1.0], [3.0, -2.0]])
-    assert metrics.action_smoothness(a) == pytest.approx(7.0 / 3.0)
+  # dim0 diffs 1,2 -> 5; dim1 diffs -1,-1 -> 2; total 7 / T=3.
+  a = np.array([[0.0, 0.0], [1.0, -1.0], [3.0, -2.0]])
+  assert metrics.action_smoothness(a) == pytest.approx(7.0 / 3.0)
 
 
 def test_linear_ramp_second_difference_zero():
-    # a_t = 2t - 1: first diffs all 2 -> 19 * 2^2 / 20 = 3.8; second diffs 0.
-    a = (2.0 * np.arange(20) - 1.0)[:, None]
-    assert metrics.action_smoothness(a) == pytest.approx(3.8)
-    assert metrics.action_smoothness_2nd(a) == pytest.approx(0.0, abs=1e-12)
+  # a_t = 2t - 1: first diffs all 2 -> 19 * 2^2 / 20 = 3.8; second diffs 0.
+  a = (2.0 * np.arange(20) - 1.0)[:, None]
+  assert metrics.action_smoothness(a) == pytest.approx(3.8)
+  assert metrics.action_smoothness_2nd(a) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_action_smoothness_batched():
-    # Episode 0: 5/3 (above); episode 1 constant: 0 -> mean 5/6.
-    a = np.stack([np.array([[0.0], [1.0], [3.0]]), np.zeros((3, 1))])
-    assert metrics.action_smoothness(a) == pytest.approx(5.0 / 6.0)
+  # Episode 0: 5/3 (above); episode 1 constant: 0 -> mean 5/6.
+  a = np.stack([np.array([[0.0], [1.0], [3.0]]), np.zeros((3, 1))])
+  assert metrics.action_smoothness(a) == pytest.approx(5.0 / 6.0)
 
 
 # ---------------------------------------------------------------- S_torso
 def test_torso_stability_known_variances():
-    # h = 1 +/- 0.2 -> Var 0.04; roll const -> 0; pitch +/- 0.1 -> 0.01;
-    # yaw alternates pi-0.05 / -pi+0.05: unwrapped pi -/+ 0.05 -> Var 0.0025.
-    # S = 2*0.04 + 3*(0 + 0.01 + 0.0025) = 0.08 + 0.0375 = 0.1175.
-    sgn = np.where(np.arange(100) % 2 == 0, 1.0, -1.0)
-    h = 1.0 + 0.2 * sgn
-    euler = np.stack(
-        [np.full(100, 0.3), 0.1 * sgn, np.where(sgn > 0, np.pi - 0.05, -np.pi + 0.05)],
-        axis=-1,
-    )
-    assert metrics.torso_stability(h, euler) == pytest.approx(0.04 + 0.01 + 0.0025)
-    assert metrics.torso_stability(h, euler, w_h=2.0, w_theta=3.0) == pytest.approx(0.1175)
+  # h = 1 +/- 0.2 -> Var 0.04; roll const -> 0; pitch +/- 0.1 -> 0.01;
+  # yaw alternates pi-0.05 / -pi+0.05: unwrapped pi -/+ 0.05 -> Var 0.0025.
+  # S = 2*0.04 + 3*(0 + 0.01 + 0.0025) = 0.08 + 0.0375 = 0.1175.
+  sgn = np.where(np.arange(100) % 2 == 0, 1.0, -1.0)
+  h = 1.0 + 0.2 * sgn
+  euler = np.stack(
+      [np.full(100, 0.3), 0.1 * sgn, np.where(sgn > 0, np.pi - 0.05, -np.pi + 0.05)],
+      axis=-1,
+  )
+  assert metrics.torso_stability(h, euler) == pytest.approx(0.04 + 0.01 + 0.0025)
+  assert metrics.torso_stability(h, euler, w_h=2.0, w_theta=3.0) == pytest.approx(0.1175)
 
 
 def test_torso_stability_batched():
-    # Episode 0: Var(h) = a^2 = 0.25; episode 1: all constant -> 0; mean 0.125.
-    sgn = np.where(np.arange(10) % 2 == 0, 1.0, -1.0)
-    h = np.stack([0.5 * sgn, np.ones(10)])
-    euler = np.zeros((2, 10, 3))
-    assert metrics.torso_stability(h, euler) == pytest.approx(0.125)
+  # Episode 0: Var(h) = a^2 = 0.25; episode 1: all constant -> 0; mean 0.125.
+  sgn = np.where(np.arange(10) % 2 == 0, 1.0, -1.0)
+  h = np.stack([0.5 * sgn, np.ones(10)])
+  euler = np.zeros((2, 10, 3))
+  assert metrics.torso_stability(h, euler) == pytest.approx(0.125)
 
 
 # ----------------------------------------------------------------- T_conv
 def test_t_conv_exponential_rise():
-    # r_i = 1 - exp(-i/100), i = 0..999. Asymptote = mean over i=900..999
-    # = 1 - e^-9 (1 - e^-1) / (100 (1 - e^-0.01)) ~= 1 - 7.84e-5 = 0.9999216.
-    # Threshold 0.95 * 0.9999216 = 0.9499255 -> exp(-i/100) <= 0.0500745
-    # -> i >= 100 * ln(1/0.0500745) ~= 299.42 -> T_conv = 300.
-    r = 1.0 - np.exp(-np.arange(1000) / 100.0)
-    t, info = metrics.convergence_iteration(r, window=1)
-    assert t == 300
-    assert info["asymptote"] == pytest.approx(0.9999216, abs=1e-6)
-    assert info["threshold"] == pytest.approx(0.95 * info["asymptote"])
-    assert info["window"] == 1 and info["converged"]
+  # r_i = 1 - exp(-i/100), i = 0..999. Asymptote = mean over i=900..999
+  # = 1 - e^-9 (1 - e^-1) / (100 (1 - e^-0.01)) ~= 1 - 7.84e-5 = 0.9999216.
+  # Threshold 0.95 * 0.9999216 = 0.9499255 -> exp(-i/100) <= 0.0500745
+  # -> i >= 100 * ln(1/0.0500745) ~= 299.42 -> T_conv = 300.
+  r = 1.0 - np.exp(-np.arange(1000) / 100.0)
+  t, info = metrics.convergence_iteration(r, window=1)
+  assert t == 300
+  assert info["asymptote"] == pytest.approx(0.9999216, abs=1e-6)
+  assert info["threshold"] == pytest.approx(0.95 * info["asymptote"])
+  assert info["window"] == 1 and info["converged"]
 
 
 def test_t_conv_late_dip_moves_after_dip():
-    # Converged by 300, but iterations 700..709 drop to 0 -> last index below
-    # threshold is 709 -> T_conv = 710.
-    r = 1.0 - np.exp(-np.arange(1000) / 100.0)
-    r[700:710] = 0.0
-    t, _ = metrics.convergence_iteration(r, window=1)
-    assert t == 710
+  # Converged by 300, but iterations 700..709 drop to 0 -> last index below
+  # threshold is 709 -> T_conv = 710.
+  r = 1.0 - np.exp(-np.arange(1000) / 100.0)
+  r[700:710] = 0.0
+  t, _ = metrics.convergence_iteration(r, window=1)
+  assert t == 710
 
 
 def test_t_conv_default_window_and_smoothing():
-    # Step at 500 from 0 to 1, N=1000 -> default window 20. Trailing mean at
-    # index i >= 500 is (i - 499)/20; >= 0.95 first at i - 499 = 19 -> i = 518.
-    r = np.where(np.arange(1000) >= 500, 1.0, 0.0)
-    t, info = metrics.convergence_iteration(r)
-    assert info["window"] == 20
-    assert t == 518
+  # Step at 500 from 0 to 1, N=1000 -> default window 20. Trailing mean at
+  # index i >= 500 is (i - 499)/20; >= 0.95 first at i - 499 = 19 -> i = 518.
+  r = np.where(np.arange(1000) >= 500, 1.0, 0.0)
+  t, info = metrics.convergence_iteration(r)
+  assert info["window"] == 20
+  assert t == 518
 
 
 def test_t_conv_negative_asymptote():
-    # Rewards rise from -10 to -2 at i=400. Asymptote -2, threshold
-    # -2 - 0.05*2 = -2.1 (0.95 * -2 = -1.9 would be unreachable) -> T_conv 400.
-    r = np.where(np.arange(1000) >= 400, -2.0, -10.0)
-    t, info = metrics.convergence_iteration(r, window=1)
-    assert info["threshold"] == pytest.approx(-2.1)
-    assert t == 400
+  # Rewards rise from -10 to -2 at i=400. Asymptote -2, threshold
+  # -2 - 0.05*2 = -2.1 (0.95 * -2 = -1.9 would be unreachable) -> T_conv 400.
+  r = np.where(np.arange(1000) >= 400, -2.0, -10.0)
+  t, info = metrics.convergence_iteration(r, window=1)
+  assert info["threshold"] == pytest.approx(-2.1)
+  assert t == 400
 
 
 def test_t_conv_not_converged():
-    # Last value far below asymptote of the last 10% -> never stays -> N.
-    r = np.ones(100)
-    r[-1] = 0.0
-    t, info = metrics.convergence_iteration(r, window=1)
-    assert t == 100 and not info["converged"]
+  # Last value far below asymptote of the last 10% -> never stays -> N.
+  r = np.ones(100)
+  r[-1] = 0.0
+  t, info = metrics.convergence_iteration(r, window=1)
+  assert t == 100 and not info["converged"]
 
 
 # ----------------------------------------------------- all_metrics / stats
 def test_all_metrics_batched_shapes_and_types():
-    e, t, a = 3, T_GAIT, 6
-    rng = np.random.default_rng(0)
-    traj = {
-        "actions": rng.normal(size=(e, t, a)),
-        "base_height": 1.0 + 0.01 * rng.normal(size=(e, t)),
-        "euler": 0.01 * rng.normal(size=(e, t, 3)),
-        "hip_pitch": np.stack([np.tile(np.sin(W), (e, 1)), np.tile(-np.sin(W), (e, 1))], -1),
-    }
-    out = metrics.all_metrics(traj, rewards_per_iteration=1.0 - np.exp(-np.arange(1000) / 100.0))
-    assert set(out) == {"S_action", "S_action_2nd", "S_torso", "C_limb", "T_conv"}
-    assert all(isinstance(v, float) for v in out.values())
-    assert out["C_limb"] < 1e-2
-    # iid N(0,1) actions: E[S_action] ~= 2*A*(T-1)/T ~= 12.
-    assert out["S_action"] == pytest.approx(12.0, rel=0.1)
-    assert "T_conv" not in metrics.all_metrics(traj)
+  e, t, a = 3, T_GAIT, 6
+  rng = np.random.default_rng(0)
+  traj = {
+      "actions": rng.normal(size=(e, t, a)),
+      "base_height": 1.0 + 0.01 * rng.normal(size=(e, t)),
+      "euler": 0.01 * rng.normal(size=(e, t, 3)),
+      "hip_pitch": np.stack([np.tile(np.sin(W), (e, 1)), np.tile(-np.sin(W), (e, 1))], -1),
+  }
+  out = metrics.all_metrics(traj, rewards_per_iteration=1.0 - np.exp(-np.arange(1000) / 100.0))
+  assert set(out) == {"S_action", "S_action_2nd", "S_torso", "C_limb", "T_conv"}
+  assert all(isinstance(v, float) for v in out.values())
+  assert out["C_limb"] < 1e-2
+  # iid N(0,1) actions: E[S_action] ~= 2*A*(T-1)/T ~= 12.
+  assert out["S_action"] == pytest.approx(12.0, rel=0.1)
+  assert "T_conv" not in metrics.all_metrics(traj)
 
 
 @pytest.mark.parametrize(
@@ -176,28 +176,28 @@ def test_all_metrics_batched_shapes_and_types():
     ],
 )
 def test_bad_shapes_raise(fn, args):
-    with pytest.raises(ValueError, match="shape"):
-        fn(*args)
+  with pytest.raises(ValueError, match="shape"):
+    fn(*args)
 
 
 def test_all_metrics_bad_hip_shape():
-    traj = {
-        "actions": np.zeros((1, 10, 2)),
-        "base_height": np.zeros((1, 10)),
-        "euler": np.zeros((1, 10, 3)),
-        "hip_pitch": np.zeros((1, 10, 3)),
-    }
-    with pytest.raises(ValueError, match="hip_pitch"):
-        metrics.all_metrics(traj)
+  traj = {
+      "actions": np.zeros((1, 10, 2)),
+      "base_height": np.zeros((1, 10)),
+      "euler": np.zeros((1, 10, 3)),
+      "hip_pitch": np.zeros((1, 10, 3)),
+  }
+  with pytest.raises(ValueError, match="hip_pitch"):
+    metrics.all_metrics(traj)
 
 
 def test_seed_summary_and_welch():
-    # mean 2, sample std sqrt(((1)^2 + 0 + 1^2)/2) = 1.
-    s = metrics.seed_summary([1.0, 2.0, 3.0])
-    assert s == {"mean": 2.0, "std": pytest.approx(1.0), "n": 3}
-    assert metrics.seed_summary([5.0])["std"] == 0.0
-    # Means 2 vs 12, both std 1, n=3: t = -10 / sqrt(1/3 + 1/3) ~= -12.247.
-    r = metrics.welch_ttest([1.0, 2.0, 3.0], [11.0, 12.0, 13.0])
-    assert r["t"] == pytest.approx(-10.0 / np.sqrt(2.0 / 3.0))
-    assert r["p"] < 1e-3
-    assert np.isnan(metrics.welch_ttest([1.0], [2.0, 3.0])["p"])
+  # mean 2, sample std sqrt(((1)^2 + 0 + 1^2)/2) = 1.
+  s = metrics.seed_summary([1.0, 2.0, 3.0])
+  assert s == {"mean": 2.0, "std": pytest.approx(1.0), "n": 3}
+  assert metrics.seed_summary([5.0])["std"] == 0.0
+  # Means 2 vs 12, both std 1, n=3: t = -10 / sqrt(1/3 + 1/3) ~= -12.247.
+  r = metrics.welch_ttest([1.0, 2.0, 3.0], [11.0, 12.0, 13.0])
+  assert r["t"] == pytest.approx(-10.0 / np.sqrt(2.0 / 3.0))
+  assert r["p"] < 1e-3
+  assert np.isnan(metrics.welch_ttest([1.0], [2.0, 3.0])["p"])
