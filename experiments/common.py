@@ -234,6 +234,7 @@ def run_local_processes(module: str, argv: list[str], n: int) -> int:
   import socket
   import subprocess
   import tempfile
+  import warnings
 
   with socket.socket() as sock:
     sock.bind(("127.0.0.1", 0))
@@ -246,9 +247,14 @@ def run_local_processes(module: str, argv: list[str], n: int) -> int:
     env[DISTRIBUTED_ENV["process_id"]] = str(i)
     log = None if i == 0 else tempfile.TemporaryFile(mode="w+")
     logs.append(log)
-    procs.append(subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env),
-                                  stdout=log, stderr=subprocess.STDOUT if log else None,
-                                  start_new_session=True, preexec_fn=_die_with_parent))
+    with warnings.catch_warnings():
+      # The child execs a fresh interpreter at once (after one prctl call), so the fork of this
+      # process, whose JAX has threads, cannot deadlock it, as Python's warning fears.
+      warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called",
+                              category=RuntimeWarning)
+      procs.append(subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env),
+                                    stdout=log, stderr=subprocess.STDOUT if log else None,
+                                    start_new_session=True, preexec_fn=_die_with_parent))
 
   def forward(signum, frame):
     for p in procs:

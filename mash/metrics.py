@@ -33,6 +33,10 @@ __all__ = [
     "all_metrics",
     "seed_summary",
     "welch_ttest",
+    "bootstrap_ci",
+    "holm",
+    "hedges_g",
+    "verdict",
 ]
 
 
@@ -272,3 +276,68 @@ def welch_ttest(a: Sequence[float], b: Sequence[float]) -> dict:
     return {"t": float("nan"), "p": float("nan")}
   res = stats.ttest_ind(a, b, equal_var=False)
   return {"t": float(res.statistic), "p": float(res.pvalue)}
+
+
+def bootstrap_ci(values: Sequence[float], level: float = 0.95, resamples: int = 10_000,
+                 seed: int = 0) -> tuple[float, float]:
+  """Percentile bootstrap confidence interval of the mean over seeds.
+
+  Args:
+    values: one value per seed, ``[S]``.
+    level: coverage of the interval.
+    resamples: bootstrap resamples (seeds drawn with replacement).
+    seed: random seed of the resampling (the interval is reproducible).
+
+  Returns:
+    ``(lo, hi)``; ``(nan, nan)`` for no values, ``(v, v)`` for one.
+  """
+  v = np.asarray(values, dtype=np.float64).reshape(-1)
+  if v.size == 0:
+    return float("nan"), float("nan")
+  rng = np.random.default_rng(seed)
+  means = v[rng.integers(0, v.size, size=(resamples, v.size))].mean(axis=1)
+  tail = (1.0 - level) / 2.0
+  return float(np.quantile(means, tail)), float(np.quantile(means, 1.0 - tail))
+
+
+def holm(pvalues: Sequence[float]) -> list[float]:
+  """Holm-Bonferroni adjusted p-values (family-wise error over the metrics of one comparison).
+
+  The i-th smallest of m p-values is multiplied by ``m - i`` (i from 0), made non-decreasing in
+  that order and capped at 1; NaN p-values stay NaN and do not count in m.
+  """
+  p = np.asarray(pvalues, dtype=np.float64).reshape(-1)
+  out = np.full_like(p, np.nan)
+  finite = np.flatnonzero(np.isfinite(p))
+  order = finite[np.argsort(p[finite], kind="stable")]
+  m, running = len(order), 0.0
+  for i, idx in enumerate(order):
+    running = max(running, min(1.0, (m - i) * p[idx]))
+    out[idx] = running
+  return [float(x) for x in out]
+
+
+def hedges_g(a: Sequence[float], b: Sequence[float]) -> float:
+  """Standardized mean difference ``(mean a - mean b) / pooled std``, small-sample corrected by
+  ``1 - 3 / (4 (n_a + n_b) - 9)``; NaN with fewer than 2 values a side or no spread at all."""
+  a = np.asarray(a, dtype=np.float64).reshape(-1)
+  b = np.asarray(b, dtype=np.float64).reshape(-1)
+  if a.size < 2 or b.size < 2:
+    return float("nan")
+  pooled = np.sqrt(((a.size - 1) * a.var(ddof=1) + (b.size - 1) * b.var(ddof=1))
+                   / (a.size + b.size - 2))
+  if pooled == 0:
+    return float("nan")
+  correction = 1.0 - 3.0 / (4.0 * (a.size + b.size) - 9.0)
+  return float((a.mean() - b.mean()) / pooled * correction)
+
+
+def verdict(mean_a: float, mean_b: float, p_adjusted: float, lower_is_better: bool,
+            names: tuple[str, str] = ("MASH", "PPO"), alpha: float = 0.05) -> str:
+  """``'<a> better'``, ``'<b> better'`` or ``'no difference at this power'``: a side is better
+  only when the (Holm-adjusted) p is below ``alpha`` and its mean is on the better side."""
+  if not (np.isfinite(p_adjusted) and p_adjusted < alpha and np.isfinite(mean_a)
+          and np.isfinite(mean_b)) or mean_a == mean_b:
+    return "no difference at this power"
+  a_better = (mean_a < mean_b) == lower_is_better
+  return f"{names[0] if a_better else names[1]} better"

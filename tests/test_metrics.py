@@ -201,3 +201,40 @@ def test_seed_summary_and_welch():
   assert r["t"] == pytest.approx(-10.0 / np.sqrt(2.0 / 3.0))
   assert r["p"] < 1e-3
   assert np.isnan(metrics.welch_ttest([1.0], [2.0, 3.0])["p"])
+
+
+def test_bootstrap_ci_of_the_mean():
+  # Constant values: the interval is the value itself; one value: (v, v).
+  assert metrics.bootstrap_ci([2.0, 2.0, 2.0]) == (2.0, 2.0)
+  assert metrics.bootstrap_ci([1.5]) == (1.5, 1.5)
+  # Seeds 0..9: the mean 4.5 lies inside, the interval inside [0, 9], narrower than the range,
+  # and the same seed gives the same interval.
+  lo, hi = metrics.bootstrap_ci(np.arange(10.0))
+  assert 0.0 < lo < 4.5 < hi < 9.0 and (hi - lo) < 5.0
+  assert metrics.bootstrap_ci(np.arange(10.0)) == (lo, hi)
+  assert all(np.isnan(metrics.bootstrap_ci([])))
+
+
+def test_holm_adjusts_in_order():
+  # m = 3: sorted 0.01, 0.02, 0.04 -> x3, x2, x1 = 0.03, 0.04, 0.04 (kept non-decreasing).
+  np.testing.assert_allclose(metrics.holm([0.04, 0.01, 0.02]), [0.04, 0.03, 0.04])
+  # NaN stays NaN and does not count: m = 2 -> 0.3 x 2 = 0.6, then max(0.6, 0.6 x 1) = 0.6.
+  out = metrics.holm([0.6, float("nan"), 0.3])
+  assert out[0] == pytest.approx(0.6) and np.isnan(out[1]) and out[2] == pytest.approx(0.6)
+  # Capped at 1: 0.6 x 2 = 1.2 -> 1, then max(1, 0.7) = 1.
+  assert metrics.holm([0.6, 0.7]) == [1.0, 1.0]
+
+
+def test_hedges_g_hand_value():
+  # a = 1, 2, 3 (mean 2, var 1); b = 4, 5, 6 (mean 5, var 1): pooled sd 1, d = -3,
+  # correction 1 - 3 / (4 * 6 - 9) = 0.8 -> g = -2.4.
+  assert metrics.hedges_g([1, 2, 3], [4, 5, 6]) == pytest.approx(-2.4)
+  assert np.isnan(metrics.hedges_g([1], [2, 3]))
+  assert np.isnan(metrics.hedges_g([1, 1], [1, 1]))
+
+
+def test_verdict_needs_significance_and_direction():
+  assert metrics.verdict(0.1, 0.5, 0.01, lower_is_better=True) == "MASH better"
+  assert metrics.verdict(0.1, 0.5, 0.01, lower_is_better=False) == "PPO better"
+  assert metrics.verdict(0.1, 0.5, 0.2, lower_is_better=True) == "no difference at this power"
+  assert metrics.verdict(0.1, 0.5, float("nan"), True) == "no difference at this power"
