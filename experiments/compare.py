@@ -34,46 +34,94 @@ def _fmt(mean: float, std: float) -> str:
   return f"{mean:.3g} ± {std:.2g}"
 
 
-def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str, dict]:
-  """Markdown and JSON of the comparison from per-method evaluation results."""
+# Which way is better, per metric (forward speed: faster, at a command the policies fall short of).
+LOWER_IS_BETTER = {"T_conv": True, "S_action": True, "S_action_2nd": True, "S_torso": True,
+                   "C_limb": True, "fall_rate": True, "forward_speed": False}
+PAPER_METRICS = ("T_conv", "S_action", "S_torso", "C_limb")
+ALL_EPISODE_METRICS = ("S_action", "S_action_2nd", "S_torso", "C_limb")
+
+
+def _summary(values: list[float]) -> dict:
   from mash import metrics as metrics_lib
-  table = {}
+  lo, hi = metrics_lib.bootstrap_ci(values)
+  return {**metrics_lib.seed_summary(values), "ci95": [lo, hi], "values": values}
+
+
+def _tests(table: dict, keys: list[str]) -> dict:
+  """Welch's test, Holm's correction over ``keys``, Hedges' g (MASH - PPO) and the verdict."""
+  from mash import metrics as metrics_lib
+  out = {k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"])
+         for k in keys}
+  adjusted = metrics_lib.holm([out[k]["p"] for k in keys])
+  for k, p_holm in zip(keys, adjusted):
+    metric = k.split("/")[-1]
+    out[k].update(
+        p_holm=p_holm,
+        hedges_g=metrics_lib.hedges_g(table["mash"][k]["values"], table["ppo"][k]["values"]),
+        verdict=metrics_lib.verdict(table["mash"][k]["mean"], table["ppo"][k]["mean"], p_holm,
+                                    LOWER_IS_BETTER[metric]))
+  return out
+
+
+def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str, dict]:
+  """Markdown and JSON of the comparison from per-method evaluation results.
+
+  Per metric and method: mean, std and a 95 % bootstrap CI over seeds; between the methods:
+  Welch's t-test, Holm's correction across every metric of the report, Hedges' g and a verdict
+  ("MASH better", "PPO better" or "no difference at this power"). The smoothness, torso and
+  coordination metrics are given twice: over the surviving episodes (the paper's) and over every
+  episode up to its fall (``all_episodes``, when the evaluation has them), so that caution cannot
+  win on its own.
+  """
+  table = {algo: {} for algo in results}
+  keys = list(METRICS)
   for algo, res in results.items():
-    table[algo] = {}
     for k in METRICS:
-      vals = [m[k] for m in res["per_seed"] if m.get(k) is not None]
-      table[algo][k] = {**metrics_lib.seed_summary(vals), "values": vals}
-  tests = {k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"])
-           for k in METRICS}
+      table[algo][k] = _summary([m[k] for m in res["per_seed"] if m.get(k) is not None])
+  if all("all_episodes" in m for res in results.values() for m in res["per_seed"]):
+    for k in ALL_EPISODE_METRICS:
+      keys.append(f"all_episodes/{k}")
+      for algo, res in results.items():
+        table[algo][f"all_episodes/{k}"] = _summary(
+            [m["all_episodes"][k] for m in res["per_seed"] if m["all_episodes"][k] is not None])
+  tests = _tests(table, keys)
+
+  def cell(algo, k):
+    t = table[algo][k]
+    if t["n"] == 0 or not np.isfinite(t["mean"]):
+      return "n/a"
+    return f"{_fmt(t['mean'], t['std'])} [{t['ci95'][0]:.3g}, {t['ci95'][1]:.3g}]"
+
   lines = [f"# MASH vs single-agent PPO: {task}", "",
            f"Preset `{preset}`, {seeds} seeds per method, same budget; evaluation: deterministic "
            "policy, DR on, fixed forward command. Lower is better for T_conv, S_action, S_torso, "
-           "C_limb. Mean ± std over seeds; p: Welch's t-test MASH vs PPO.", "",
-           "| Method | T_conv | S_action | S_action (2nd diff.) | S_torso | C_limb | fall rate | "
-           "forward speed (m/s) |", "|---|---|---|---|---|---|---|---|"]
-  for algo in ("mash", "ppo"):
-    row = [NAMES[algo] + " (ours)"] + [_fmt(table[algo][k]["mean"], table[algo][k]["std"])
-                                       for k in METRICS]
-    lines.append("| " + " | ".join(row) + " |")
-  lines.append("| p (Welch) | " + " | ".join(
-      "n/a" if not np.isfinite(tests[k]["p"]) else f"{tests[k]['p']:.3g}" for k in METRICS) + " |")
-  for algo in ("mash", "ppo"):
-    paper = PAPER[task][algo]
-    lines.append(f"| {NAMES[algo]} (paper) | ~{paper['T_conv']} | {paper['S_action']} | – | "
-                 f"{paper['S_torso']:.3g} | {paper['C_limb']} | – | – |")
+           "C_limb and the fall rate, higher for the forward speed. Mean ± std over seeds "
+           "[95 % bootstrap CI]; p: Welch's t-test, Holm-adjusted over every metric below; g: "
+           "Hedges' g of MASH - PPO.", "",
+           "| metric | MASH (ours) | Single-agent PPO (ours) | p (Holm) | g | verdict | "
+           "MASH (paper) | PPO (paper) |", "|---|---|---|---|---|---|---|---|"]
+  for k in keys:
+    t = tests[k]
+    p_holm = "n/a" if not np.isfinite(t["p_holm"]) else f"{t['p_holm']:.3g}"
+    g = "n/a" if not np.isfinite(t["hedges_g"]) else f"{t['hedges_g']:+.2f}"
+    paper = [PAPER[task][a].get(k, "–") for a in ("mash", "ppo")]
+    paper = [f"~{v}" if k == "T_conv" else (f"{v:.3g}" if isinstance(v, float) else v)
+             for v in paper]
+    name = k.replace("all_episodes/", "") + (" (all episodes, up to the fall)"
+                                              if k.startswith("all_episodes/") else "")
+    lines.append(f"| {name} | {cell('mash', k)} | {cell('ppo', k)} | {p_holm} | {g} | "
+                 f"{t['verdict']} | {paper[0]} | {paper[1]} |")
   lines += ["", "## Verdict", ""]
-  for k in ("T_conv", "S_action", "S_torso", "C_limb"):
+  for k in [k for k in keys if k.split("/")[-1] in PAPER_METRICS]:
     m, p_ = table["mash"][k]["mean"], table["ppo"][k]["mean"]
-    if m is None or p_ is None or not (np.isfinite(m) and np.isfinite(p_)):
-      lines.append(f"- {k}: not available.")
+    label = k.replace("all_episodes/", "") + (" over all episodes" if "/" in k else "")
+    if not (np.isfinite(m) and np.isfinite(p_)):
+      lines.append(f"- {label}: not available.")
       continue
-    better = m < p_
-    sig = np.isfinite(tests[k]["p"]) and tests[k]["p"] < 0.05
-    lines.append(f"- {k}: MASH {'lower' if better else 'not lower'} than PPO ({m:.4g} vs {p_:.4g})"
-                 f"{', significant at p < 0.05' if sig else ', not significant'}"
-                 f"; the paper reports MASH lower.")
+    lines.append(f"- {label}: {tests[k]['verdict']} (MASH {m:.4g} vs PPO {p_:.4g}, Holm-adjusted "
+                 f"p = {tests[k]['p_holm']:.3g}); the paper reports MASH lower.")
   return "\n".join(lines) + "\n", {"task": task, "preset": preset, "seeds": seeds,
-                                   "table": table, "welch": tests, "paper": PAPER[task]}
+                                    "table": table, "tests": tests, "paper": PAPER[task]}
 
 
 def plot_curves(run_dirs: dict, path: Path | None = None, names: dict | None = None):

@@ -63,6 +63,10 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
   result["fall_rate_by_friction"] = evaluation.falls_by_friction(
       merged["friction"], merged["alive"].min(axis=1) > 0)
+  result["all_episodes"] = {
+      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
+          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
+      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
   result["per_seed"] = per_seed
   result["eval_config"] = eval_cfg.__dict__
   result["smoothing_window"] = None
@@ -108,7 +112,11 @@ def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
   result["eval_config"] = {k: (list(v) if isinstance(v, tuple) else v)
                            for k, v in dataclasses.asdict(eval_cfg).items()}
   if cfg.seeds > 1:
-    result["per_seed"] = per_seed
+    result["all_episodes"] = {
+      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
+          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
+      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
+  result["per_seed"] = per_seed
   if write:
     out = Path(run_dir) / tracking_dir_name(eval_cfg, iteration)
     out.mkdir(exist_ok=True)

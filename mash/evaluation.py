@@ -251,6 +251,27 @@ def evaluate(traj: dict[str, np.ndarray], command_vx: float,
   )
   if "friction" in traj:
     out["fall_rate_by_friction"] = falls_by_friction(traj["friction"], survived)
+  out["all_episodes"] = metrics_up_to_the_fall(traj)
+  return out
+
+
+def metrics_up_to_the_fall(traj: dict[str, np.ndarray], min_steps: int = 50) -> dict[str, Any]:
+  """S_action, S_action_2nd, S_torso and C_limb over every episode, a fallen one up to its fall
+  (so that falling early cannot make a policy look smooth), each episode weighted equally.
+
+  Episodes alive fewer than ``min_steps`` steps (1 s at 50 Hz: less than a gait cycle and a half)
+  are left out and counted in ``episodes_too_short``; all metrics are None when none is left.
+  """
+  alive_steps = traj["alive"].sum(axis=1).astype(int)
+  keep = np.flatnonzero(alive_steps >= min_steps)
+  per = []
+  for e in keep:
+    n = alive_steps[e]
+    per.append(metrics_lib.all_metrics({k: traj[k][e:e + 1, :n] for k in (
+        "actions", "base_height", "euler", "hip_pitch")}))
+  keys = ("S_action", "S_action_2nd", "S_torso", "C_limb")
+  out = {k: (float(np.mean([m[k] for m in per])) if per else None) for k in keys}
+  out.update(episodes=int(len(keep)), episodes_too_short=int(len(alive_steps) - len(keep)))
   return out
 
 

@@ -160,6 +160,26 @@ def test_falls_by_friction_against_a_hand_count():
   assert [b["episodes"] for b in default] == [2, 2, 1, 0, 3]
 
 
+def test_metrics_up_to_the_fall_weigh_every_long_enough_episode():
+  """Episode 0 survives 200 steps, episode 1 falls at step 100, episode 2 at step 30 (< 50, left
+  out): each metric is the mean of episode 0's over 200 steps and episode 1's over its first 100."""
+  from mash import evaluation, metrics as metrics_lib
+  rng = np.random.default_rng(0)
+  traj = dict(actions=rng.normal(size=(3, 200, 12)), base_height=rng.normal(size=(3, 200)),
+              euler=rng.normal(size=(3, 200, 3)), hip_pitch=rng.normal(size=(3, 200, 2)),
+              alive=np.ones((3, 200)))
+  traj["alive"][1, 100:] = 0
+  traj["alive"][2, 30:] = 0
+  out = evaluation.metrics_up_to_the_fall(traj)
+  assert out["episodes"] == 2 and out["episodes_too_short"] == 1
+  first = metrics_lib.action_smoothness(traj["actions"][0])
+  fallen = metrics_lib.action_smoothness(traj["actions"][1, :100])
+  assert out["S_action"] == pytest.approx((first + fallen) / 2)
+  torso = [metrics_lib.torso_stability(traj["base_height"][0], traj["euler"][0]),
+           metrics_lib.torso_stability(traj["base_height"][1, :100], traj["euler"][1, :100])]
+  assert out["S_torso"] == pytest.approx(np.mean(torso))
+
+
 def test_evaluation_without_pushes_keeps_the_other_randomization():
   """``--no-push``: pushes drawn as zero, every other randomized range as trained; its files go
   beside ``eval/``, never over it."""
@@ -274,12 +294,26 @@ def test_compare_report_from_synthetic_results():
                          for i in range(3)]}
 
   md, data = build_report("bipedal", {"mash": seeds(1.0), "ppo": seeds(2.0)}, "smoke", 3)
-  assert "| MASH (ours) |" in md and "| Single-agent PPO (paper) | ~1661 |" in md
+  assert "| metric | MASH (ours) | Single-agent PPO (ours) |" in md and "| ~1306 | ~1661 |" in md
   assert data["table"]["mash"]["T_conv"]["mean"] == pytest.approx(101.0)
-  assert data["welch"]["S_action"]["p"] < 0.05
-  assert "- S_action: MASH lower than PPO" in md
-  md, _ = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
-  assert "- S_action: MASH not lower than PPO" in md
+  lo, hi = data["table"]["mash"]["T_conv"]["ci95"]
+  assert 100.0 <= lo <= 101.0 <= hi <= 102.0
+  tests = data["tests"]["S_action"]
+  assert tests["p"] < 0.05 and tests["p_holm"] >= tests["p"] and tests["hedges_g"] < 0
+  assert tests["verdict"] == "MASH better" and "- S_action: MASH better" in md
+  # Equal fall rates: no difference.
+  assert data["tests"]["fall_rate"]["verdict"] == "no difference at this power"
+  md, data = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
+  assert "- S_action: PPO better" in md
+  # With the all-episode metrics in the evaluation, they get rows of their own.
+  both = {a: seeds(b) for a, b in (("mash", 1.0), ("ppo", 2.0))}
+  for res in both.values():
+    for m in res["per_seed"]:
+      m["all_episodes"] = {k: m[k] * 1.5 for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
+  md, data = build_report("bipedal", both, "smoke", 3)
+  assert "| C_limb (all episodes, up to the fall) |" in md
+  assert data["table"]["ppo"]["all_episodes/C_limb"]["mean"] == pytest.approx(0.9)
+  assert "- C_limb over all episodes:" in md
 
 
 def test_expected_duration_line_from_the_timed_calls():
