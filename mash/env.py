@@ -508,6 +508,7 @@ class MashEnv(brax_base.Env):
     info["next_critic_obs"] = obs["critic"]
     metrics = {f"reward/{k}": jnp.zeros(()) for k in rewards.TERMS
                if getattr(self.config.reward_scales, k) != 0.0}
+    metrics["paper_reward"] = jnp.zeros(())
     zero = jnp.zeros(())
     return State(pipeline_state=data, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
@@ -658,8 +659,10 @@ class MashEnv(brax_base.Env):
         stride_error=stride_error, penalty_force=penalty_force, action=action,
         last_action=info["last_action"], last_last_action=info["last_last_action"],
         dt=cfg.ctrl_dt, env_steps=info["env_steps"])
-    terms = rewards.reward_terms(x, cfg.reward_scales, cfg.reward_params)
+    paper_terms = rewards.reward_terms(x, cfg.reward_scales, cfg.reward_params, curricula=False)
+    terms = rewards.apply_curricula(paper_terms, x.env_steps, cfg.reward_params)
     reward = rewards.total_reward(terms, cfg.reward_params)
+    paper_reward = rewards.total_reward(paper_terms, cfg.reward_params)
 
     finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
     fall = ((s["base_height"] < cfg.fall_height) | (jnp.abs(s["euler"][0]) > cfg.fall_tilt)
@@ -683,6 +686,7 @@ class MashEnv(brax_base.Env):
     info["next_critic_obs"] = obs["critic"]
     reward = jnp.where(finite, reward, 0.0)
     metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in terms.items()}
+    metrics["paper_reward"] = jnp.where(finite, paper_reward, 0.0)
     next_state = State(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics,
                        info=info)
     if not cfg.auto_reset:

@@ -252,21 +252,30 @@ def tracking_boost(env_steps: jax.Array | None, params: RewardParams) -> jax.Arr
   return 1.0 + (params.tracking_boost - 1.0) * left
 
 
-def reward_terms(x: RewardInputs, scales: RewardScales, params: RewardParams) -> dict[str, jax.Array]:
+def reward_terms(x: RewardInputs, scales: RewardScales, params: RewardParams,
+                 curricula: bool = True) -> dict[str, jax.Array]:
   """Each non-zero term times its scale and dt: ``{name: []}``; their sum is the step reward.
 
-  The ``params.ramped_terms`` are further multiplied by :func:`penalty_ramp` and the
-  ``params.boosted_terms`` by :func:`tracking_boost` (both 1 unless their curriculum is on).
+  With ``curricula`` the terms are then passed through :func:`apply_curricula` (no change unless
+  a curriculum is on); without, they are the paper's, whatever the curricula say.
   """
-  ramp = penalty_ramp(x.env_steps, params)
-  boost = tracking_boost(x.env_steps, params)
+  terms = {name: fn(x, params) * getattr(scales, name) * x.dt
+           for name, fn in TERMS.items() if getattr(scales, name) != 0.0}
+  return apply_curricula(terms, x.env_steps, params) if curricula else terms
 
-  def curriculum(name):
+
+def apply_curricula(terms: dict[str, jax.Array], env_steps: jax.Array | None,
+                    params: RewardParams) -> dict[str, jax.Array]:
+  """The paper-scale ``terms`` with the ``params.ramped_terms`` multiplied by
+  :func:`penalty_ramp` and the ``params.boosted_terms`` by :func:`tracking_boost`."""
+  ramp = penalty_ramp(env_steps, params)
+  boost = tracking_boost(env_steps, params)
+
+  def factor(name):
     return ((ramp if name in params.ramped_terms else 1.0)
             * (boost if name in params.boosted_terms else 1.0))
 
-  return {name: fn(x, params) * getattr(scales, name) * x.dt * curriculum(name)
-          for name, fn in TERMS.items() if getattr(scales, name) != 0.0}
+  return {name: value * factor(name) for name, value in terms.items()}
 
 
 def total_reward(terms: dict[str, jax.Array], params: RewardParams) -> jax.Array:

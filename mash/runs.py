@@ -112,7 +112,8 @@ def with_fresh_episodes(trainer, cfg: experiment.ExperimentConfig, state, iterat
   fresh = init_state(trainer, cfg, salt=iteration + 1,
                      env_steps=iteration * cfg.train.unroll_length)
   episodes = state.episodes.replace(running_return=fresh.episodes.running_return,
-                                    running_length=fresh.episodes.running_length)
+                                    running_length=fresh.episodes.running_length,
+                                    running_paper_return=fresh.episodes.running_paper_return)
   return state.replace(env_state=fresh.env_state, episodes=episodes)
 
 
@@ -211,7 +212,8 @@ def _stop_on_signals(verbose: bool = True) -> Iterator[dict[str, Any]]:
 def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_iteration: int,
           wall_s: float, seeds: int) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
   """Turns one call's metrics into progress rows (mean over seeds) and per-seed rows."""
-  keys = ["episode_reward", "episode_length"] + sorted(k for k in metrics if k.startswith("reward/"))
+  keys = (["episode_reward", "episode_length", "paper_episode_reward"]
+          + sorted(k for k in metrics if k.startswith("reward/")))
   extra = sorted(k for k in metrics if k not in keys)
   per_seed = {k: np.asarray(metrics[k]).reshape(seeds, -1) for k in keys + extra}
   n = per_seed["episode_reward"].shape[1]

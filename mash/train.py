@@ -85,12 +85,18 @@ class EpisodeStats:
     last_return: ``[]`` mean return of the episodes completed in the last iteration that completed
       any (carried over otherwise; 0 before the first).
     last_length: ``[]`` the same for episode lengths.
+    running_paper_return: ``[B]``, last_paper_return: ``[]``: the same for the env's
+      ``metrics['paper_reward']``, the reward under the paper's weights whatever the curricula
+      apply (the trained reward for an env without it), so curves of runs with different
+      curricula compare.
   """
 
   running_return: jax.Array
   running_length: jax.Array
   last_return: jax.Array
   last_length: jax.Array
+  running_paper_return: jax.Array
+  last_paper_return: jax.Array
 
 
 @flax.struct.dataclass
@@ -150,16 +156,20 @@ class RolloutCarry(NamedTuple):
     env_state: batched env state.
     episode_return: ``[B]`` reward summed since each env's last reset.
     episode_length: ``[B]`` steps since each env's last reset.
+    episode_paper_return: ``[B]`` paper-weight reward summed since each env's last reset.
     done_return: ``[]`` sum of the returns of episodes completed in this rollout (this device).
     done_length: ``[]`` sum of their lengths.
+    done_paper_return: ``[]`` sum of their paper-weight returns.
     done_count: ``[]`` number of episodes completed.
   """
 
   env_state: Any
   episode_return: jax.Array
   episode_length: jax.Array
+  episode_paper_return: jax.Array
   done_return: jax.Array
   done_length: jax.Array
+  done_paper_return: jax.Array
   done_count: jax.Array
 
 
@@ -322,9 +332,10 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
     else:
       env_state = jax.vmap(env.reset, in_axes=(0, None))(env_keys, env_steps)
     zeros = jnp.zeros((config.num_envs,), jnp.float32)
-    episodes = EpisodeStats(running_return=zeros, running_length=zeros,
-                            last_return=jnp.zeros((), jnp.float32),
-                            last_length=jnp.zeros((), jnp.float32))
+    scalar = jnp.zeros((), jnp.float32)
+    episodes = EpisodeStats(running_return=zeros, running_length=zeros, last_return=scalar,
+                            last_length=scalar, running_paper_return=zeros,
+                            last_paper_return=scalar)
     return TrainState(params=params, opt_state=optimizer.init(params),
                       normalizer=normalization.init_normalizer(obs_sizes), env_state=env_state,
                       episodes=episodes, rng=rng, iteration=jnp.zeros((), jnp.int32))
@@ -346,12 +357,16 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
       next_state = batch_step(carry.env_state, assemble_action(groups, actions))
       done = next_state.done
       reward, next_critic_obs, nan_reset = _screen_blowups(next_state)
+      paper = jnp.where(nan_reset > 0, 0.0, next_state.metrics.get('paper_reward', reward))
       ret = carry.episode_return + reward
+      paper_ret = carry.episode_paper_return + paper
       length = carry.episode_length + 1.0
       carry = RolloutCarry(env_state=next_state, episode_return=ret * (1.0 - done),
                            episode_length=length * (1.0 - done),
+                           episode_paper_return=paper_ret * (1.0 - done),
                            done_return=carry.done_return + jnp.sum(ret * done),
                            done_length=carry.done_length + jnp.sum(length * done),
+                           done_paper_return=carry.done_paper_return + jnp.sum(paper_ret * done),
                            done_count=carry.done_count + jnp.sum(done))
       transition = Transition(
           obs=obs, actions=actions, log_probs=log_probs, reward=reward, done=done,
@@ -361,8 +376,9 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
 
     zero = jnp.zeros((), jnp.float32)
     carry = RolloutCarry(env_state=env_state, episode_return=episodes.running_return,
-                         episode_length=episodes.running_length, done_return=zero,
-                         done_length=zero, done_count=zero)
+                         episode_length=episodes.running_length,
+                         episode_paper_return=episodes.running_paper_return, done_return=zero,
+                         done_length=zero, done_paper_return=zero, done_count=zero)
     return jax.lax.scan(step, carry, jax.random.split(key, config.unroll_length))
 
   def minibatch_step(opt: OptimizerState, batch: losses.LossBatch,
@@ -448,10 +464,14 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
         last_return=jnp.where(any_done, _sum(ro.done_return, axis_name) / denom,
                               state.episodes.last_return),
         last_length=jnp.where(any_done, _sum(ro.done_length, axis_name) / denom,
-                              state.episodes.last_length))
+                              state.episodes.last_length),
+        running_paper_return=ro.episode_paper_return,
+        last_paper_return=jnp.where(any_done, _sum(ro.done_paper_return, axis_name) / denom,
+                                    state.episodes.last_paper_return))
     metrics = {
         'episode_reward': episodes.last_return,
         'episode_length': episodes.last_length,
+        'paper_episode_reward': episodes.last_paper_return,
         'episodes_completed': done_count,
         'step_reward': _mean(tr.reward, axis_name),
         'done_rate': _mean(tr.done, axis_name),
@@ -518,7 +538,8 @@ def state_partition_specs(axis_name: str = 'devices') -> TrainState:
   batch = P(axis_name)
   return TrainState(params=P(), opt_state=P(), normalizer=P(), env_state=batch,
                     episodes=EpisodeStats(running_return=batch, running_length=batch,
-                                          last_return=P(), last_length=P()),
+                                          last_return=P(), last_length=P(),
+                                          running_paper_return=batch, last_paper_return=P()),
                     rng=P(), iteration=P())
 
 

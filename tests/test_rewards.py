@@ -197,6 +197,10 @@ def test_tracking_boost_falls_to_the_paper_scales():
   assert boosted == {"tracking_lin_vel", "tracking_ang_vel"}
   for steps, factor, ramp in ((0, 3.0, 0.0), (50, 2.0, 0.5), (100, 1.0, 1.0), (400, 1.0, 1.0)):
     terms = rewards.reward_terms(_inputs(env_steps=jnp.int32(steps)), scales, boost)
+    # Without the curricula: the paper's terms at every step.
+    paper = rewards.reward_terms(_inputs(env_steps=jnp.int32(steps)), scales, boost,
+                                 curricula=False)
+    chex.assert_trees_all_close(paper, full, rtol=1e-6)
     for name in PAPER_TERMS:
       want = full[name] * (factor if name in boosted else 1.0) * (
           ramp if name in boost.ramped_terms else 1.0)

@@ -221,3 +221,12 @@ def test_two_devices_sharded_training_in_subprocess():
   result = subprocess.run([sys.executable, '-c', TWO_DEVICE_SCRIPT], env=env, cwd=root,
                           capture_output=True, text=True, timeout=300)
   assert result.returncode == 0 and 'OK' in result.stdout, result.stdout + result.stderr[-3000:]
+
+
+def test_paper_episode_reward_is_the_episode_reward_without_a_paper_metric(learning_run):
+  """The toy env reports no ``paper_reward``: the paper-weight episode return is then the trained
+  one, iteration by iteration (the MJX env's curricula make them differ; test_env checks its
+  ``paper_reward`` against the reward where no curriculum is on)."""
+  m = learning_run['metrics']
+  np.testing.assert_allclose(m['paper_episode_reward'], m['episode_reward'], rtol=1e-6)
+  assert np.any(m['episode_reward'] != 0)
