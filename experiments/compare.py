@@ -54,7 +54,7 @@ def _tests(table: dict, keys: list[str]) -> dict:
          for k in keys}
   adjusted = metrics_lib.holm([out[k]["p"] for k in keys])
   for k, p_holm in zip(keys, adjusted):
-    metric = k.split("/")[-1]
+    metric = k.split("/")[-1].split("@")[0]
     out[k].update(
         p_holm=p_holm,
         hedges_g=metrics_lib.hedges_g(table["mash"][k]["values"], table["ppo"][k]["values"]),
@@ -63,8 +63,23 @@ def _tests(table: dict, keys: list[str]) -> dict:
   return out
 
 
-def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str, dict]:
+def seed_curves(run_dir, key: str = "paper_episode_reward") -> np.ndarray:
+  """``[S, N]`` per-seed curve of a run's ``progress_seeds.csv``: the paper-weight episode reward
+  (the trained one for runs logged before it existed)."""
+  from mash import runs
+  p = runs.read_progress(run_dir, per_seed=True)
+  key = key if key in p else "episode_reward"
+  seeds = np.unique(p["seed"]).astype(int)
+  return np.stack([p[key][p["seed"] == s] for s in seeds])
+
+
+def build_report(task: str, results: dict, preset: str, seeds: int,
+                 convergence: dict | None = None) -> tuple[str, dict]:
   """Markdown and JSON of the comparison from per-method evaluation results.
+
+  ``convergence`` (``mash.metrics.common_threshold_t_conv`` of both methods' curves) adds one
+  T_conv row per smoothing window: the first iteration a seed's smoothed paper-weight reward
+  reaches the threshold common to both methods (seeds that never do are left out and counted).
 
   Per metric and method: mean, std and a 95 % bootstrap CI over seeds; between the methods:
   Welch's t-test, Holm's correction across every metric of the report, Hedges' g and a verdict
@@ -78,6 +93,15 @@ def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str
   for algo, res in results.items():
     for k in METRICS:
       table[algo][k] = _summary([m[k] for m in res["per_seed"] if m.get(k) is not None])
+  unreached = {}
+  if convergence is not None:
+    for w in convergence["windows"]:
+      k = f"T_conv@{w}"
+      keys.append(k)
+      for algo in results:
+        values = convergence["t_conv"][algo][w]
+        table[algo][k] = _summary([v for v in values if v is not None])
+        unreached[(algo, k)] = sum(v is None for v in values)
   if all("all_episodes" in m for res in results.values() for m in res["per_seed"]):
     for k in ALL_EPISODE_METRICS:
       keys.append(f"all_episodes/{k}")
@@ -109,19 +133,28 @@ def build_report(task: str, results: dict, preset: str, seeds: int) -> tuple[str
              for v in paper]
     name = k.replace("all_episodes/", "") + (" (all episodes, up to the fall)"
                                               if k.startswith("all_episodes/") else "")
+    if "@" in k:
+      w = k.split("@")[1]
+      missed = [f"{NAMES[a]} {unreached[(a, k)]} seed(s)" for a in ("mash", "ppo")
+                if unreached[(a, k)]]
+      name = (f"T_conv (paper reward reaches {convergence['threshold']:.1f}, window {w})"
+              + (f"; never reached: {', '.join(missed)}" if missed else ""))
     lines.append(f"| {name} | {cell('mash', k)} | {cell('ppo', k)} | {p_holm} | {g} | "
                  f"{t['verdict']} | {paper[0]} | {paper[1]} |")
   lines += ["", "## Verdict", ""]
-  for k in [k for k in keys if k.split("/")[-1] in PAPER_METRICS]:
+  for k in [k for k in keys if k.split("/")[-1].split("@")[0] in PAPER_METRICS]:
     m, p_ = table["mash"][k]["mean"], table["ppo"][k]["mean"]
     label = k.replace("all_episodes/", "") + (" over all episodes" if "/" in k else "")
+    if "@" in k:
+      label = f"T_conv (common threshold, window {k.split('@')[1]})"
     if not (np.isfinite(m) and np.isfinite(p_)):
       lines.append(f"- {label}: not available.")
       continue
     lines.append(f"- {label}: {tests[k]['verdict']} (MASH {m:.4g} vs PPO {p_:.4g}, Holm-adjusted "
                  f"p = {tests[k]['p_holm']:.3g}); the paper reports MASH lower.")
   return "\n".join(lines) + "\n", {"task": task, "preset": preset, "seeds": seeds,
-                                    "table": table, "tests": tests, "paper": PAPER[task]}
+                                    "table": table, "tests": tests, "paper": PAPER[task],
+                                    "convergence": convergence}
 
 
 def plot_curves(run_dirs: dict, path: Path | None = None, names: dict | None = None):
@@ -206,7 +239,10 @@ def main(argv=None) -> None:
         runs.train(cfg, d, resume=runs.is_run(d), show_progress=not args.no_progress)
       print(f"[{algo}] evaluating", flush=True)
       results[algo] = evaluate_run(str(d), eval_cfg)
-    md, data = build_report(args.task, results, preset, args.seeds)
+    from mash import metrics as metrics_lib
+    convergence = metrics_lib.common_threshold_t_conv(
+        {algo: seed_curves(d) for algo, d in run_dirs.items()})
+    md, data = build_report(args.task, results, preset, args.seeds, convergence)
     (out / "report.md").write_text(md)
     (out / "report.json").write_text(json.dumps(data, indent=2, default=float))
     plot_curves(run_dirs, out / "reward_curves.png")

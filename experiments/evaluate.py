@@ -43,12 +43,15 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
 
   progress = runs.read_progress(run_dir, per_seed=True)
+  # T_conv on the reward under the paper's weights, whatever curricula trained (older runs: the
+  # trained reward, the only one they logged).
+  curve_key = "paper_episode_reward" if "paper_episode_reward" in progress else "episode_reward"
   per_seed, trajs = [], []
   for s in range(cfg.seeds):
     params = runs.seed_slice(run.params, s, cfg.seeds)
     nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
     traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), eval_cfg)
-    curve = progress["episode_reward"][progress["seed"] == s] if progress else None
+    curve = progress[curve_key][progress["seed"] == s] if progress else None
     per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve))
     traj["seed"] = np.full(traj["alive"].shape[0], s)
     trajs.append(traj)
@@ -71,7 +74,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   result["eval_config"] = eval_cfg.__dict__
   result["smoothing_window"] = None
   if progress:
-    _, info = metrics_lib.convergence_iteration(progress["episode_reward"][progress["seed"] == 0])
+    _, info = metrics_lib.convergence_iteration(progress[curve_key][progress["seed"] == 0])
     result["smoothing_window"] = info["window"]
   if write:
     out = Path(run_dir) / eval_dir_name(eval_cfg, iteration)

@@ -26,6 +26,9 @@ from scipy import signal, stats
 
 __all__ = [
     "convergence_iteration",
+    "smooth",
+    "reach_iteration",
+    "common_threshold_t_conv",
     "action_smoothness",
     "action_smoothness_2nd",
     "torso_stability",
@@ -48,6 +51,57 @@ def _as_array(x, name: str, ndims: Sequence[int], expected: str) -> np.ndarray:
   if arr.size == 0:
     raise ValueError(f"`{name}` must be non-empty with shape {expected}, got {arr.shape}")
   return arr
+
+
+def smooth(rewards, window: int) -> np.ndarray:
+  """Trailing moving average ``[N]``: entry ``i`` is the mean of ``rewards[max(0, i - window +
+  1) : i + 1]`` (shorter at the start)."""
+  r = _as_array(rewards, "rewards", (1,), "[N] (N >= 1)")
+  if window < 1:
+    raise ValueError(f"`window` must be >= 1, got {window}")
+  csum = np.concatenate([[0.0], np.cumsum(r)])
+  idx = np.arange(r.shape[0])
+  start = np.maximum(0, idx - window + 1)
+  return (csum[idx + 1] - csum[start]) / (idx + 1 - start)
+
+
+def reach_iteration(rewards, threshold: float, window: int) -> int | None:
+  """The first iteration (1-based) at which the ``window``-smoothed curve reaches ``threshold``;
+  None when it never does."""
+  hit = np.flatnonzero(smooth(rewards, window) >= threshold)
+  return int(hit[0]) + 1 if hit.size else None
+
+
+def common_threshold_t_conv(curves: Mapping[str, np.ndarray], fraction: float = 0.9,
+                            windows: Sequence[int] | None = None) -> dict:
+  """``T_conv`` of several methods against one threshold, at several smoothing windows.
+
+  The threshold is ``fraction`` of the lowest of the methods' final rewards (each the mean over
+  its seeds of the mean of their last 10 % of iterations), so every method's curve can reach it
+  and the first to do so converged faster; unlike the first iteration after which a curve
+  *stays* near its own end, it does not hinge on the noise at the run's end.
+
+  Args:
+    curves: method -> ``[S, N]`` reward per iteration of each seed (the same N for all).
+    fraction: share of the lowest final reward that counts as converged.
+    windows: smoothing windows (iterations); default ``N/100, N/50, N/25`` (at least 1).
+
+  Returns:
+    ``{'threshold', 'windows', 'final': {method: ...}, 't_conv': {method: {window: [S] first
+    iteration or None}}}``.
+  """
+  arrays = {k: np.atleast_2d(np.asarray(v, np.float64)) for k, v in curves.items()}
+  n = next(iter(arrays.values())).shape[1]
+  if any(a.shape[1] != n for a in arrays.values()):
+    raise ValueError("every curve must have the same number of iterations")
+  tail = max(1, int(round(0.1 * n)))
+  final = {k: float(a[:, -tail:].mean()) for k, a in arrays.items()}
+  lowest = min(final.values())
+  threshold = lowest * fraction if lowest >= 0 else lowest * (2.0 - fraction)
+  windows = [max(1, n // d) for d in (100, 50, 25)] if windows is None else list(windows)
+  return {"threshold": float(threshold), "windows": windows, "final": final,
+          "t_conv": {k: {w: [reach_iteration(row, threshold, w) for row in a] for w in windows}
+                     for k, a in arrays.items()}}
 
 
 def convergence_iteration(rewards, window: int | None = None) -> tuple[int, dict]:

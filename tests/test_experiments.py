@@ -314,6 +314,16 @@ def test_compare_report_from_synthetic_results():
   assert "| C_limb (all episodes, up to the fall) |" in md
   assert data["table"]["ppo"]["all_episodes/C_limb"]["mean"] == pytest.approx(0.9)
   assert "- C_limb over all episodes:" in md
+  # T_conv against the threshold common to both methods, one row per smoothing window.
+  from mash import metrics as metrics_lib
+  it = np.arange(1, 101, dtype=float)
+  fast, slow = np.minimum(10.0, 0.25 * it), np.minimum(10.0, 0.125 * it)
+  conv = metrics_lib.common_threshold_t_conv({"mash": [fast, fast, fast],
+                                              "ppo": [slow, slow, slow * 0]}, windows=[1, 2, 4])
+  md, data = build_report("bipedal", both, "smoke", 3, conv)
+  assert data["table"]["mash"]["T_conv@1"]["mean"] == pytest.approx(conv["t_conv"]["mash"][1][0])
+  assert data["table"]["ppo"]["T_conv@1"]["n"] == 2  # the flat seed never reached it
+  assert "window 2" in md and "never reached: Single-agent PPO 1 seed(s)" in md
 
 
 def test_expected_duration_line_from_the_timed_calls():

@@ -238,3 +238,22 @@ def test_verdict_needs_significance_and_direction():
   assert metrics.verdict(0.1, 0.5, 0.01, lower_is_better=False) == "PPO better"
   assert metrics.verdict(0.1, 0.5, 0.2, lower_is_better=True) == "no difference at this power"
   assert metrics.verdict(0.1, 0.5, float("nan"), True) == "no difference at this power"
+
+
+def test_reach_iteration_and_a_common_threshold():
+  # Trailing mean of 2 over 0, 2, 4, 6: 0, 1, 3, 5 -> first >= 3 at index 2, iteration 3.
+  assert metrics.reach_iteration([0.0, 2.0, 4.0, 6.0], 3.0, 2) == 3
+  assert metrics.reach_iteration([0.0, 2.0, 4.0, 6.0], 7.0, 1) is None
+  # Method a rises to 10 by iteration 40, b to 8 by iteration 75 (100 iterations each); finals
+  # 10 and 8 -> threshold 0.9 * 8 = 7.2: a (0.25 i) reaches it at i >= 28.8 -> 29, b (8 i / 75)
+  # at i >= 67.5 -> 68, unsmoothed (window 1).
+  it = np.arange(1, 101, dtype=float)
+  a = np.minimum(10.0, 0.25 * it)
+  b = np.minimum(8.0, 8.0 * it / 75)
+  out = metrics.common_threshold_t_conv({"a": [a, a], "b": [b]}, windows=[1, 2, 3])
+  assert out["threshold"] == pytest.approx(7.2) and out["final"] == {"a": 10.0, "b": 8.0}
+  assert out["t_conv"]["a"][1] == [29, 29] and out["t_conv"]["b"][1] == [68]
+  # A trailing window w lags a linear rise by (w - 1) / 2: a at w = 2: 0.25 (i - 0.5) >= 7.2 ->
+  # i >= 29.3 -> 30; b at w = 3: 8 (i - 1) / 75 >= 7.2 -> i >= 68.5 -> 69.
+  assert out["t_conv"]["a"][2] == [30, 30] and out["t_conv"]["b"][3] == [69]
+  assert metrics.common_threshold_t_conv({"a": [a]})["windows"] == [1, 2, 4]
