@@ -1,14 +1,19 @@
 """``python -m experiments.compare --task bipedal --seeds 5``: MASH vs single-agent PPO.
 
-Trains both methods on the same budget and seeds (each method's seeds in one jitted call),
-evaluates every seed, and writes ``report.md`` (the paper's metrics table with ours beside it),
-``report.json``, ``reward_curves.png`` (mean and band over seeds) and ``hip_pitch.png``.
+Both methods train on the same preset, budget and seeds, one run per method and seed, paired by
+seed (``OUT/mash/seed<s>/``, ``OUT/ppo/seed<s>/``, each a plain ``python -m experiments.<task>``
+run with ``train.seed=s``, so on a CPU it uses both cores the same way). The command resumes: a
+finished seed is reused, an interrupted one continues from its checkpoint, so the runs can span
+several sittings; seeds run in pairs (MASH then PPO for seed 0, then seed 1, ...). Every finished
+seed is evaluated (``OUT/<algo>/seed<s>/eval/``) and the report is rewritten after each pair:
+``report.md`` (the paper's metrics table with ours beside it, statistics over seeds),
+``report.json``, ``reward_curves.png`` (paper-weight reward, mean and band over seeds) and
+``hip_pitch.png``.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -61,16 +66,6 @@ def _tests(table: dict, keys: list[str]) -> dict:
         verdict=metrics_lib.verdict(table["mash"][k]["mean"], table["ppo"][k]["mean"], p_holm,
                                     LOWER_IS_BETTER[metric]))
   return out
-
-
-def seed_curves(run_dir, key: str = "paper_episode_reward") -> np.ndarray:
-  """``[S, N]`` per-seed curve of a run's ``progress_seeds.csv``: the paper-weight episode reward
-  (the trained one for runs logged before it existed)."""
-  from mash import runs
-  p = runs.read_progress(run_dir, per_seed=True)
-  key = key if key in p else "episode_reward"
-  seeds = np.unique(p["seed"]).astype(int)
-  return np.stack([p[key][p["seed"] == s] for s in seeds])
 
 
 def build_report(task: str, results: dict, preset: str, seeds: int,
@@ -157,23 +152,49 @@ def build_report(task: str, results: dict, preset: str, seeds: int,
                                     "convergence": convergence}
 
 
+def seed_dirs(run_dir) -> list[Path]:
+  """The per-seed run directories of one method (``seed<s>/``, in seed order), the directory
+  itself when it is a run (older layout: all seeds in one run), or the given list of them."""
+  if isinstance(run_dir, (list, tuple)):
+    return [Path(d) for d in run_dir]
+  d = Path(run_dir)
+  if (d / "config.json").is_file():
+    return [d]
+  return sorted((p for p in d.glob("seed*") if (p / "config.json").is_file()),
+                key=lambda p: int(p.name[4:]) if p.name[4:].isdigit() else -1)
+
+
+def method_curves(run_dir, key: str = "paper_episode_reward") -> tuple[np.ndarray, np.ndarray]:
+  """``(iterations [N], curves [S, N])`` of a method's seeds (truncated to the shortest);
+  ``run_dir`` as for :func:`seed_dirs`."""
+  from mash import runs
+  curves, iterations = [], None
+  for d in seed_dirs(run_dir):
+    p = runs.read_progress(d, per_seed=True)
+    k = key if key in p else "episode_reward"
+    for s in np.unique(p["seed"]).astype(int):
+      curves.append(p[k][p["seed"] == s])
+      if iterations is None or len(p["iteration"][p["seed"] == s]) < len(iterations):
+        iterations = p["iteration"][p["seed"] == s]
+  n = min(len(c) for c in curves)
+  return iterations[:n], np.stack([c[:n] for c in curves])
+
+
 def plot_curves(run_dirs: dict, path: Path | None = None, names: dict | None = None):
-  """Mean episode reward with a +-std band over seeds, one line per run directory."""
+  """Mean paper-weight episode reward (the trained one for runs logged before it existed) with a
+  +-std band over seeds, one line per method; ``run_dirs`` maps a method to its run directory or
+  to the folder of its ``seed<s>/`` runs."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  from mash import runs
   fig, ax = plt.subplots(figsize=(6.5, 3.8))
   for algo, d in run_dirs.items():
-    p = runs.read_progress(d, per_seed=True)
-    seeds = np.unique(p["seed"]).astype(int)
-    curves = np.stack([p["episode_reward"][p["seed"] == s] for s in seeds])
-    it = p["iteration"][p["seed"] == seeds[0]]
+    it, curves = method_curves(d)
     mean, std = curves.mean(0), curves.std(0)
-    ax.plot(it, mean, label=(names or NAMES).get(algo, algo))
+    ax.plot(it, mean, label=f"{(names or NAMES).get(algo, algo)} ({len(curves)} seeds)")
     ax.fill_between(it, mean - std, mean + std, alpha=0.25)
   ax.set_xlabel("iteration")
-  ax.set_ylabel("mean episode reward")
+  ax.set_ylabel("episode reward (paper weights)")
   ax.legend()
   ax.grid(alpha=0.3)
   fig.tight_layout()
@@ -189,7 +210,7 @@ def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:
   import matplotlib.pyplot as plt
   fig, axes = plt.subplots(2, 1, figsize=(7, 4.5), sharex=True)
   for algo, d in run_dirs.items():
-    tr = np.load(Path(d) / "eval" / "trajectories.npz")
+    tr = np.load(seed_dirs(d)[0] / "eval" / "trajectories.npz")
     n = min(int(seconds / float(tr["dt"])), tr["hip_pitch"].shape[1])
     t = np.arange(n) * float(tr["dt"])
     for i in range(2):
@@ -206,47 +227,114 @@ def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:
   plt.close(fig)
 
 
+def seed_state(run_dir: Path, num_iterations: int) -> str:
+  """``'done'`` (trained to ``num_iterations``), ``'resume'`` (a run that stopped early) or
+  ``'new'`` (nothing there yet) for one seed's run directory."""
+  if not (run_dir / "config.json").is_file():
+    return "new"
+  summary = run_dir / "summary.json"
+  if summary.is_file():
+    s = json.loads(summary.read_text())
+    if not s.get("interrupted") and s.get("iterations", 0) >= num_iterations:
+      return "done"
+  return "resume"
+
+
+def _seed_key(d: Path) -> str:
+  return d.name if d.name.startswith("seed") and d.name[4:].isdigit() else "seed0"
+
+
+def build_from_dirs(task: str, out: Path, preset: str) -> tuple[str, dict, dict]:
+  """The report of the seeds evaluated so far in ``out/mash/`` and ``out/ppo/``, paired by seed:
+  ``(markdown, data, {algo: [seed run directories]})``."""
+  from mash import metrics as metrics_lib
+  evaluated = {algo: {_seed_key(d): d for d in seed_dirs(out / algo)
+                      if (d / "eval" / "metrics.json").is_file()} for algo in ("mash", "ppo")}
+  paired = sorted(set(evaluated["mash"]) & set(evaluated["ppo"]), key=lambda n: int(n[4:]))
+  if not paired:
+    raise common.UserError(f"'{out}' has no seed evaluated for both methods yet")
+  dirs = {algo: [evaluated[algo][n] for n in paired] for algo in evaluated}
+  results = {algo: {"per_seed": [json.loads((d / "eval" / "metrics.json").read_text())
+                                 ["per_seed"][0] for d in dirs[algo]]} for algo in dirs}
+  curves = {algo: method_curves(dirs[algo])[1] for algo in dirs}
+  n_it = min(c.shape[1] for c in curves.values())
+  convergence = metrics_lib.common_threshold_t_conv({a: c[:, :n_it] for a, c in curves.items()})
+  md, data = build_report(task, results, preset, len(paired), convergence)
+  data["seeds_paired"] = paired
+  return md, data, dirs
+
+
+def report(task: str, out: Path, preset: str) -> str:
+  """Writes ``report.md``, ``report.json``, ``reward_curves.png`` and ``hip_pitch.png`` of the
+  seeds evaluated so far (:func:`build_from_dirs`); returns the markdown."""
+  md, data, dirs = build_from_dirs(task, out, preset)
+  (out / "report.md").write_text(md)
+  (out / "report.json").write_text(json.dumps(data, indent=2, default=float))
+  plot_curves(dirs, out / "reward_curves.png")
+  plot_hip({algo: d[0] for algo, d in dirs.items()}, out / "hip_pitch.png")
+  return md
+
+
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.compare", description=__doc__.splitlines()[0])
   p.add_argument("--task", default="bipedal", help="bipedal | armswing")
   p.add_argument("--seeds", type=int, default=5)
   p.add_argument("--preset", default=None, help="smoke | cpu | gpu (default: from the backend)")
-  p.add_argument("--out", default=None, help="output directory (default: runs/compare_<task>_<time>)")
-  p.add_argument("--episodes", type=int, default=16, help="evaluation episodes per seed")
+  p.add_argument("--out", default=None,
+                 help="output directory; run the same command again to continue it (default: "
+                      "runs/compare_<task>_<preset>)")
+  p.add_argument("--episodes", type=int, default=128, help="evaluation episodes per seed")
   p.add_argument("--eval-seconds", type=float, default=20.0)
-  p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE")
+  p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                 help="override a config field of both methods (repeatable)")
   p.add_argument("--no-progress", action="store_true")
   args = p.parse_args(argv)
   with common.user_errors():
-    from mash import evaluation, experiment, runs
+    import subprocess
+    import sys
+    from mash import evaluation, experiment
     from experiments.evaluate import evaluate_run
+    if args.task not in ("bipedal", "armswing"):
+      raise common.UserError(f"--task '{args.task}' is unknown; expected bipedal or armswing")
+    if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
+      raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
     preset = args.preset or common.default_preset()[0]
-    cfgs = {algo: experiment.make_config(args.task, algo, preset, args.seeds, "none", args.set)
+    cfgs = {algo: experiment.make_config(args.task, algo, preset, 1, "none", args.set)
             for algo in ("mash", "ppo")}
-    out = Path(args.out or f"runs/compare_{args.task}_{preset}_{time.strftime('%Y%m%d-%H%M%S')}")
-    print(f"preset: {preset}; comparing MASH and PPO on {args.task}, {args.seeds} seeds each -> "
-          f"{out}", flush=True)
+    out = Path(args.out or f"runs/compare_{args.task}_{preset}")
+    common.check_writable_dir(out, "--out")
+    print(f"preset: {preset}; MASH vs PPO on {args.task}, seeds 0-{args.seeds - 1}, one run per "
+          f"method and seed -> {out} (a finished seed is reused, an interrupted one resumed)",
+          flush=True)
     eval_cfg = evaluation.EvalConfig(num_episodes=args.episodes, episode_s=args.eval_seconds)
-    run_dirs, results = {}, {}
-    for algo, cfg in cfgs.items():
-      d = out / algo
-      run_dirs[algo] = d
-      if runs.is_run(d) and (d / "summary.json").exists() and not json.loads(
-          (d / "summary.json").read_text()).get("interrupted"):
-        print(f"[{algo}] already trained in {d}; reusing it", flush=True)
-      else:
-        print(f"[{algo}] training", flush=True)
-        runs.train(cfg, d, resume=runs.is_run(d), show_progress=not args.no_progress)
-      print(f"[{algo}] evaluating", flush=True)
-      results[algo] = evaluate_run(str(d), eval_cfg)
-    from mash import metrics as metrics_lib
-    convergence = metrics_lib.common_threshold_t_conv(
-        {algo: seed_curves(d) for algo, d in run_dirs.items()})
-    md, data = build_report(args.task, results, preset, args.seeds, convergence)
-    (out / "report.md").write_text(md)
-    (out / "report.json").write_text(json.dumps(data, indent=2, default=float))
-    plot_curves(run_dirs, out / "reward_curves.png")
-    plot_hip(run_dirs, out / "hip_pitch.png")
+    for seed in range(args.seeds):
+      for algo, cfg in cfgs.items():
+        d = out / algo / f"seed{seed}"
+        state = seed_state(d, cfg.train.num_iterations)
+        what = {"done": "trained; reusing it", "resume": "resuming", "new": "training"}[state]
+        print(f"[{algo} seed {seed}] {what}", flush=True)
+        if state != "done":
+          command = [sys.executable, "-m", f"experiments.{args.task}"]
+          if state == "resume":
+            command += ["--resume", str(d)]
+          else:
+            command += ["--algo", algo, "--preset", preset, "--out", str(d),
+                        "--set", f"train.seed={seed}"]
+            command += [x for o in args.set for x in ("--set", o)]
+          if args.no_progress:
+            command.append("--no-progress")
+          code = subprocess.call(command)
+          if code != 0:
+            raise common.UserError(f"the {algo} run of seed {seed} stopped with status {code}; "
+                                   f"run the same command again to resume it ({d})")
+        metrics_file = d / "eval" / "metrics.json"
+        fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
+                 .get("eval_config", {}).get("num_episodes") == args.episodes)
+        if not fresh:
+          print(f"[{algo} seed {seed}] evaluating on {args.episodes} episodes", flush=True)
+          evaluate_run(str(d), eval_cfg)
+      md = report(args.task, out, preset)
+      print(f"report after {seed + 1} paired seed(s): {out}/report.md", flush=True)
     print(md)
     print(f"wrote {out}/report.md, report.json, reward_curves.png, hip_pitch.png")
 

@@ -326,6 +326,34 @@ def test_compare_report_from_synthetic_results():
   assert "window 2" in md and "never reached: Single-agent PPO 1 seed(s)" in md
 
 
+def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
+  """compare's plan per seed: nothing there -> new; a run stopped early -> resume; trained to the
+  end -> done. Its report pairs the seeds evaluated for both methods."""
+  import shutil
+  from mash import evaluation
+  from experiments import compare
+  from experiments.evaluate import evaluate_run
+  assert compare.seed_state(tmp_path / "none", 10) == "new"
+  if not (smoke_run / "eval" / "metrics.json").exists():
+    evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
+  out = tmp_path / "cmp"
+  for algo, seeds in (("mash", (0, 1)), ("ppo", (0,))):
+    for s in seeds:
+      shutil.copytree(smoke_run, out / algo / f"seed{s}")
+  assert compare.seed_state(out / "mash" / "seed0", 10) == "done"
+  assert compare.seed_state(out / "mash" / "seed0", 20) == "resume"  # a longer budget
+  summary = out / "mash" / "seed1" / "summary.json"
+  summary.write_text(json.dumps({**json.loads(summary.read_text()), "interrupted": True}))
+  assert compare.seed_state(out / "mash" / "seed1", 10) == "resume"
+  assert [d.name for d in compare.seed_dirs(out / "mash")] == ["seed0", "seed1"]
+  md, data, dirs = compare.build_from_dirs("bipedal", out, "smoke")
+  assert data["seeds_paired"] == ["seed0"] and [d.name for d in dirs["ppo"]] == ["seed0"]
+  assert "T_conv (paper reward reaches" in md
+  compare.report("bipedal", out, "smoke")
+  for name in ("report.md", "report.json", "reward_curves.png", "hip_pitch.png"):
+    assert (out / name).stat().st_size > 0
+
+
 def test_expected_duration_line_from_the_timed_calls():
   """Calls of 4 s and 6 s with 10 iterations each: median 5 s = 0.5 s per iteration (2 it/s);
   100 iterations left take 50 s, about 1 min."""
