@@ -41,7 +41,8 @@ def _fmt(mean: float, std: float) -> str:
 
 # Which way is better, per metric (forward speed: faster, at a command the policies fall short of).
 LOWER_IS_BETTER = {"T_conv": True, "S_action": True, "S_action_2nd": True, "S_torso": True,
-                   "C_limb": True, "fall_rate": True, "forward_speed": False}
+                   "C_limb": True, "C_limb_arm_leg": True, "fall_rate": True,
+                   "forward_speed": False}
 PAPER_METRICS = ("T_conv", "S_action", "S_torso", "C_limb")
 ALL_EPISODE_METRICS = ("S_action", "S_action_2nd", "S_torso", "C_limb")
 
@@ -85,8 +86,10 @@ def build_report(task: str, results: dict, preset: str, seeds: int,
   """
   table = {algo: {} for algo in results}
   keys = list(METRICS)
+  if all("C_limb_arm_leg" in m for res in results.values() for m in res["per_seed"]):
+    keys.insert(keys.index("C_limb") + 1, "C_limb_arm_leg")  # armswing: arms with opposite legs
   for algo, res in results.items():
-    for k in METRICS:
+    for k in keys:
       table[algo][k] = _summary([m[k] for m in res["per_seed"] if m.get(k) is not None])
   unreached = {}
   if convergence is not None:

@@ -52,11 +52,14 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
     nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
     traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), eval_cfg)
     curve = progress[curve_key][progress["seed"] == s] if progress else None
-    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve))
+    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve,
+                                        arms_act=cfg.env.task == "armswing"))
     traj["seed"] = np.full(traj["alive"].shape[0], s)
     trajs.append(traj)
 
   keys = ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed")
+  if "C_limb_arm_leg" in per_seed[0]:
+    keys += ("C_limb_arm_leg",)
   result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys if per_seed[0][k] is not None}
   result["T_conv"] = result.get("T_conv")
   result["command_vx"] = eval_cfg.command_vx

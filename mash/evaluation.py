@@ -16,6 +16,7 @@ import numpy as np
 
 from mash import env as env_lib
 from mash import metrics as metrics_lib
+from mash import robots
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +73,14 @@ def hip_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
   return np.array([env.spec.joints.index(n) for n in names])
 
 
+def shoulder_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
+  """[2] positions of the left and right arm-swing joints (``spec.arm_swing_joint``, the
+  shoulder pitch) in ``env.spec.joints``."""
+  names = [next(j for j in limb.joints if robots.joint_suffix(j) == env.spec.arm_swing_joint)
+           for limb in env.spec.limbs if limb.group == "arms"]
+  return np.array([env.spec.joints.index(n) for n in names])
+
+
 Perturbation = Callable[[Any, jax.Array, jax.Array], Any]
 
 
@@ -94,12 +103,14 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   Returns:
     ``actions [E,T,A]``, ``base_height [E,T]`` (torso above the soles, m), ``euler [E,T,3]``,
     ``hip_pitch [E,T,2]`` and ``hip_pitch_ref [E,T,2]`` (left, right; rad, absolute),
+    ``shoulder_pitch [E,T,2]`` (left, right; rad),
     ``forward_velocity [E,T]`` (torso frame, m/s), ``world_velocity [E,T,3]`` (torso vx, vy in
     the world frame, m/s, and the world-frame yaw rate, rad/s), ``command [E,T,4]`` (the command
     in force), ``alive [E,T]`` (1 until the fall), ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
   """
   steps = int(round(cfg.episode_s / env.dt))
   hips = hip_pitch_index(env)
+  shoulders = shoulder_pitch_index(env)
 
   def one_step(carry, t):
     state, value = carry
@@ -116,6 +127,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     yaw_rate = env_lib.quat_rotate_inverse(conj, qvel[3:6])[2]
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
                hip_pitch=s["q"][hips], hip_pitch_ref=(env._q_default + q_ref)[hips],
+               shoulder_pitch=s["q"][shoulders],
                forward_velocity=s["lin_vel"][0],
                world_velocity=jnp.stack([qvel[0], qvel[1], yaw_rate]),
                command=nxt.info["command"], done=nxt.done,
@@ -228,8 +240,11 @@ def falls_by_friction(friction: np.ndarray, survived: np.ndarray,
 
 
 def evaluate(traj: dict[str, np.ndarray], command_vx: float,
-             rewards_per_iteration: np.ndarray | None = None) -> dict[str, Any]:
-  """The SPEC §8 metrics of a rollout.
+             rewards_per_iteration: np.ndarray | None = None,
+             arms_act: bool = False) -> dict[str, Any]:
+  """The SPEC §8 metrics of a rollout; with ``arms_act`` (the armswing task) also
+  ``C_limb_arm_leg``: how far each arm's shoulder pitch is from the phase of the opposite leg's
+  hip pitch (:func:`mash.metrics.arm_leg_coordination`, target 0: in phase).
 
   Smoothness, torso and coordination metrics use the episodes that did not fall (all episodes if
   every one fell, flagged by ``metrics_on_fallen``). ``fall_rate`` is the share of episodes that
@@ -252,6 +267,9 @@ def evaluate(traj: dict[str, np.ndarray], command_vx: float,
   if "friction" in traj:
     out["fall_rate_by_friction"] = falls_by_friction(traj["friction"], survived)
   out["all_episodes"] = metrics_up_to_the_fall(traj)
+  if arms_act and "shoulder_pitch" in traj:
+    out["C_limb_arm_leg"] = metrics_lib.arm_leg_coordination(traj["shoulder_pitch"][pick],
+                                                             traj["hip_pitch"][pick])
   return out
 
 

@@ -33,6 +33,7 @@ __all__ = [
     "action_smoothness_2nd",
     "torso_stability",
     "limb_coordination",
+    "arm_leg_coordination",
     "all_metrics",
     "seed_summary",
     "welch_ttest",
@@ -264,6 +265,25 @@ def limb_coordination(hip_left, hip_right, target: float = np.pi) -> float:
 
   dev = np.abs(_wrap(phase(left) - phase(right) - target))
   return float(np.mean(dev))
+
+
+def arm_leg_coordination(shoulder_pitch, hip_pitch) -> float:
+  """Arm-leg coordination (radians, lower is better): each arm should swing in phase with the
+  opposite leg (on the T1 a negative angle moves the hand and the foot forward), so the mean of
+  ``limb_coordination(shoulder_left, hip_right, target=0)`` and ``limb_coordination(
+  shoulder_right, hip_left, target=0)``.
+
+  Args:
+    shoulder_pitch: ``[T, 2]`` or ``[E, T, 2]`` (left, right).
+    hip_pitch: the same shape (left, right).
+  """
+  s = np.asarray(shoulder_pitch, dtype=np.float64)
+  h = np.asarray(hip_pitch, dtype=np.float64)
+  if s.shape != h.shape or s.shape[-1] != 2:
+    raise ValueError(f"`shoulder_pitch` and `hip_pitch` must share a shape [..., T, 2], got "
+                     f"{s.shape} and {h.shape}")
+  return 0.5 * (limb_coordination(s[..., 0], h[..., 1], target=0.0)
+                + limb_coordination(s[..., 1], h[..., 0], target=0.0))
 
 
 def all_metrics(trajectories: Mapping[str, np.ndarray], rewards_per_iteration=None) -> dict:

@@ -180,6 +180,20 @@ def test_metrics_up_to_the_fall_weigh_every_long_enough_episode():
   assert out["S_torso"] == pytest.approx(np.mean(torso))
 
 
+def test_evaluate_reports_arm_leg_coordination_when_the_arms_act():
+  """armswing: C_limb_arm_leg from the shoulders against the opposite hips (here in phase: ~0);
+  bipedal (arms held): not reported."""
+  from mash import evaluation
+  w = 2 * np.pi * np.arange(500) / 32
+  hips = np.stack([np.sin(w), -np.sin(w)], -1)[None].repeat(2, 0)
+  traj = dict(actions=np.zeros((2, 500, 20)), base_height=np.ones((2, 500)),
+              euler=np.zeros((2, 500, 3)), hip_pitch=hips, shoulder_pitch=hips[..., ::-1] * 0.3,
+              forward_velocity=np.zeros((2, 500)), alive=np.ones((2, 500)))
+  out = evaluation.evaluate(traj, 0.4, arms_act=True)
+  assert out["C_limb_arm_leg"] < 0.05 and out["C_limb"] < 0.05
+  assert "C_limb_arm_leg" not in evaluation.evaluate(traj, 0.4)
+
+
 def test_evaluation_without_pushes_keeps_the_other_randomization():
   """``--no-push``: pushes drawn as zero, every other randomized range as trained; its files go
   beside ``eval/``, never over it."""

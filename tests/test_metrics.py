@@ -257,3 +257,15 @@ def test_reach_iteration_and_a_common_threshold():
   # i >= 29.3 -> 30; b at w = 3: 8 (i - 1) / 75 >= 7.2 -> i >= 68.5 -> 69.
   assert out["t_conv"]["a"][2] == [30, 30] and out["t_conv"]["b"][3] == [69]
   assert metrics.common_threshold_t_conv({"a": [a]})["windows"] == [1, 2, 4]
+
+
+def test_arm_leg_coordination_in_phase_with_the_opposite_leg():
+  # Left arm with the right leg and right arm with the left leg, legs in antiphase: 0.
+  left_hip, right_hip = np.sin(W), -np.sin(W)
+  shoulders = np.stack([right_hip, left_hip], -1) * 0.5
+  hips = np.stack([left_hip, right_hip], -1)
+  assert metrics.arm_leg_coordination(shoulders, hips) < 1e-2
+  # Each arm with its own leg instead: half a cycle off, pi.
+  assert metrics.arm_leg_coordination(hips * 0.5, hips) == pytest.approx(np.pi, abs=1e-2)
+  with pytest.raises(ValueError, match="share a shape"):
+    metrics.arm_leg_coordination(shoulders[:, :1], hips)
