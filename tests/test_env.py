@@ -50,6 +50,7 @@ def _make_simulate(env):
           env_steps=state.info["env_steps"],
           truncation=state.info["truncation"], fall=state.info["fall"],
           torque=state.info["last_torque"], ctrl=state.pipeline_state.ctrl,
+          next_critic_obs=state.info["next_critic_obs"],
           push=state.info["push"], obs=state.obs)
       return state, trace
 
@@ -573,6 +574,23 @@ def test_step_carries_the_previous_observation_into_the_history(random_rollout):
   assert np.all(carried[~done]) and done.any()
   np.testing.assert_array_equal(legs[1:][done][..., 32:], legs[1:][done][..., :32])
   assert not np.all(legs[1:, ..., 32:] == legs[1:, ..., :32])  # frames do differ
+
+
+def test_a_finished_episode_keeps_its_terminal_critic_observation(random_rollout):
+  """Seam between the env's auto-reset and GAE's time-out bootstrap: on a step that ends an
+  episode, ``info['next_critic_obs']`` is the critic's view of the terminal state (its step
+  counter at the episode's end), not of the fresh episode the state now holds; on every other
+  step it is the state's own critic observation."""
+  _, _, tr = random_rollout
+  done = tr["done"] > 0
+  fresh, terminal = tr["obs"]["critic"], tr["next_critic_obs"]
+  assert done.any()
+  np.testing.assert_array_equal(terminal[~done], fresh[~done])
+  assert not np.any(np.all(terminal[done] == fresh[done], axis=-1))
+  # A reset episode starts at the home pose: its joint velocities (critic entries 20-39) are 0;
+  # the terminal state's are not.
+  np.testing.assert_array_equal(fresh[done][:, 20:40], 0.0)
+  assert np.all(np.any(terminal[done][:, 20:40] != 0.0, axis=-1))
 
 
 def test_done_and_auto_reset(random_rollout, dr_env):

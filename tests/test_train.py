@@ -230,3 +230,16 @@ def test_paper_episode_reward_is_the_episode_reward_without_a_paper_metric(learn
   m = learning_run['metrics']
   np.testing.assert_allclose(m['paper_episode_reward'], m['episode_reward'], rtol=1e-6)
   assert np.any(m['episode_reward'] != 0)
+
+
+def test_the_first_update_step_sees_the_rollout_policy(toy_config, mash_env):
+  """Seam between rollout and update: with one epoch of one minibatch, the only gradient step
+  sees exactly the policy that acted (ratio 1: approx KL 0, nothing clipped), because the update
+  normalizes observations with the statistics the rollout used, not the ones updated from it.
+  (Normalizing with the updated statistics makes the KL ~3e-3 here.)"""
+  import dataclasses
+  cfg = dataclasses.replace(toy_config, num_epochs=1, num_minibatches=1, iterations_per_call=2)
+  trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  _, metrics = trainer.train_epoch(trainer.init(jax.random.PRNGKey(0)))
+  np.testing.assert_allclose(metrics['approx_kl'], 0.0, atol=1e-7)
+  np.testing.assert_array_equal(metrics['clip_fraction'], 0.0)
