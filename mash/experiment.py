@@ -72,14 +72,14 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
                                actor_hidden=(64, 64), critic_hidden=(64, 64),
                                learning_rate=1e-3)
   if preset == "cpu":
-    # 1250 iterations of 512 envs (15.4 M steps): 52 min measured on 2 cores (4,900 env steps/s),
-    # inside the hour issue 5 gives the CPU bar. Action std from 1 under the penalty curriculum,
-    # slippery floors first under the friction curriculum (both of _preset_env, both end at
-    # iteration 1000), and a learning rate decaying to 0 at the last iteration: bipedal MASH
-    # survives 91.8 % of 512 randomized episodes under per-step pushes at 0.225 m/s (0.4
-    # commanded). Without the decay the last checkpoints swing between 11 % and 21 % falls; 256
-    # envs x 1000 iterations (24 min) gave 20 % falls at 0.36 m/s.
-    # benchmarks/results/2026-11-27_cpu_bipedal_mash_step_512envs_friction_curriculum_linear_lr/.
+    # 1250 iterations of 512 envs (15.4 M steps): 2.2 s per iteration on 2 AMD EPYC (Zen 4)
+    # cores as two local processes (about 48 min with the compile). Action std from 1 under the
+    # penalty curriculum, slippery floors first under the friction curriculum (both of
+    # _preset_env, both end at iteration 1000), the stride reference, and a learning rate
+    # decaying to 0 at the last iteration: bipedal MASH survives 91.8 % of 512 randomized
+    # episodes under per-step pushes at 0.355 m/s (0.4 commanded). Without the decay the last
+    # checkpoints swing between 11 % and 21 % falls.
+    # benchmarks/results/2026-12-01_cpu_bipedal_mash_stride_reference/.
     return dataclasses.replace(base, num_iterations=1250, unroll_length=24, num_envs=512,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
                                actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64),
@@ -111,7 +111,11 @@ def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
     cfg = dataclasses.replace(cfg, reward_params=dataclasses.replace(
         cfg.reward_params, penalty_ramp_steps=ramp))
   if preset == "cpu":
-    cfg = dataclasses.replace(cfg, randomization=dataclasses.replace(
+    # The stride reference: the legs' reference strides at the commanded velocity, so the
+    # joint-position term rewards walking at the command (one run, 2026-12-01: 0.355 m/s at a
+    # 0.4 m/s command against 0.19-0.225 without it, at the same 91.8 % survival over 512
+    # episodes; benchmarks/results/2026-12-01_cpu_bipedal_mash_stride_reference/).
+    cfg = dataclasses.replace(cfg, stride_reference=True, randomization=dataclasses.replace(
         cfg.randomization, friction_initial=CPU_FRICTION_INITIAL,
         friction_ramp_steps=CPU_CURRICULUM_STEPS))
   return cfg

@@ -92,12 +92,14 @@ def test_gpu_preset_is_the_measured_walking_run():
 
 
 def test_cpu_preset_is_the_measured_walking_run():
-  """The cpu preset is the recorded 1250-iteration CPU run that met issue 5's bar (friction
-  curriculum, linear learning-rate decay), without that run's extra checkpoints."""
+  """The cpu preset is the recorded 1250-iteration CPU run with the stride reference (friction
+  and penalty curricula, linear learning-rate decay, torque noise): 0.355 m/s at 0.4 commanded."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
-      "2026-11-27_cpu_bipedal_mash_step_512envs_friction_curriculum_linear_lr" / "config.json"
+      "2026-12-01_cpu_bipedal_mash_stride_reference" / "config.json"
   measured = experiment.from_json(recorded.read_text())
+  assert json.loads(recorded.read_text())["env"]["randomization"]["torque_noise"] == 0.02
   preset = experiment.make_config("bipedal", "mash", "cpu")
+  assert preset.env.stride_reference and preset.env.actor_history == 1
   assert dataclasses.replace(measured, keep_checkpoints=preset.keep_checkpoints) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 24_000 == 1000 * preset.train.unroll_length
   assert preset.env.randomization.friction_ramp_steps == 24_000
