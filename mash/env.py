@@ -244,7 +244,8 @@ def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-
     d = {r: (foot_pose(limb, {by_role[r]: eps}) - base) / eps
          for r in ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Ankle_Pitch", "Ankle_Roll")}
     # axis 0 (x) -> hip pitch, 1 (y) -> hip roll, 2 (yaw) -> hip yaw; ankles undo the sole's tilt.
-    for axis, hip, ankle, tilt in ((0, "Hip_Pitch", "Ankle_Pitch", 3), (1, "Hip_Roll", "Ankle_Roll", 4)):
+    for axis, hip, ankle, tilt in ((0, "Hip_Pitch", "Ankle_Pitch", 3),
+                                   (1, "Hip_Roll", "Ankle_Roll", 4)):
       g = 1.0 / d[hip][axis]
       gain[joint_pos[by_role[hip]], axis] = g
       gain[joint_pos[by_role[ankle]], axis] = -g * d[hip][tilt] / d[ankle][tilt]
