@@ -1,8 +1,10 @@
 """``python -m experiments.compare --task bipedal --seeds 5``: MASH vs single-agent PPO.
 
-Both methods train on the same preset, budget and seeds, one run per method and seed, paired by
-seed (``OUT/mash/seed<s>/``, ``OUT/ppo/seed<s>/``, each a plain ``python -m experiments.<task>``
-run with ``train.seed=s``, so on a CPU it uses both cores the same way). The command resumes: a
+Both methods get the same small tuning first: seed 0 at each of ``--learning-rates``, and one
+rule (the highest final paper-weight episode reward) picks each method's rate (``tuning.json``).
+Then both train on the same preset, budget and seeds, one run per method and seed, paired by seed
+(``OUT/<algo>/lr<picked>/seed<s>/``, seed 0 being the search's run; each a plain ``python -m
+experiments.<task>`` run with ``train.seed=s``, so on a CPU it uses both cores the same way). The command resumes: a
 finished seed is reused, an interrupted one continues from its checkpoint, so the runs can span
 several sittings; seeds run in pairs (MASH then PPO for seed 0, then seed 1, ...). Every finished
 seed is evaluated (``OUT/<algo>/seed<s>/eval/``) and the report is rewritten after each pair:
@@ -243,6 +245,33 @@ def seed_state(run_dir: Path, num_iterations: int) -> str:
   return "resume"
 
 
+def lr_dir(out: Path, algo: str, lr: float) -> Path:
+  """Where a method's runs at one learning rate live: ``out/<algo>/lr<lr>/``."""
+  return Path(out) / algo / f"lr{lr:g}"
+
+
+def method_dir(out: Path, algo: str) -> Path:
+  """A method's seed runs: ``out/<algo>/lr<picked>/`` when ``out/tuning.json`` names the picked
+  learning rate, else ``out/<algo>/`` (a comparison without the search)."""
+  tuning = Path(out) / "tuning.json"
+  if tuning.is_file():
+    return lr_dir(out, algo, json.loads(tuning.read_text())["picked"][algo])
+  return Path(out) / algo
+
+
+def pick_learning_rates(finals: dict[str, dict[float, float]]) -> dict[str, float]:
+  """The search's rule, the same for both methods: per method, the learning rate whose seed-0
+  run ends with the highest paper-weight episode reward (mean over its last 10 % of iterations);
+  a tie goes to the smaller rate."""
+  return {algo: max(sorted(by_lr), key=lambda lr: by_lr[lr]) for algo, by_lr in finals.items()}
+
+
+def final_reward(run_dir: Path) -> float:
+  """Mean paper-weight episode reward over a run's last 10 % of iterations."""
+  curve = method_curves(run_dir)[1][0]
+  return float(curve[-max(1, int(round(0.1 * len(curve)))):].mean())
+
+
 def _seed_key(d: Path) -> str:
   return d.name if d.name.startswith("seed") and d.name[4:].isdigit() else "seed0"
 
@@ -251,7 +280,7 @@ def build_from_dirs(task: str, out: Path, preset: str) -> tuple[str, dict, dict]
   """The report of the seeds evaluated so far in ``out/mash/`` and ``out/ppo/``, paired by seed:
   ``(markdown, data, {algo: [seed run directories]})``."""
   from mash import metrics as metrics_lib
-  evaluated = {algo: {_seed_key(d): d for d in seed_dirs(out / algo)
+  evaluated = {algo: {_seed_key(d): d for d in seed_dirs(method_dir(out, algo))
                       if (d / "eval" / "metrics.json").is_file()} for algo in ("mash", "ppo")}
   paired = sorted(set(evaluated["mash"]) & set(evaluated["ppo"]), key=lambda n: int(n[4:]))
   if not paired:
@@ -264,6 +293,18 @@ def build_from_dirs(task: str, out: Path, preset: str) -> tuple[str, dict, dict]
   convergence = metrics_lib.common_threshold_t_conv({a: c[:, :n_it] for a, c in curves.items()})
   md, data = build_report(task, results, preset, len(paired), convergence)
   data["seeds_paired"] = paired
+  tuning = Path(out) / "tuning.json"
+  if tuning.is_file():
+    data["tuning"] = json.loads(tuning.read_text())
+    t = data["tuning"]
+    md += ("\n## Tuning\n\nThe same search for both methods: learning rates "
+           + ", ".join(f"{lr:g}" for lr in t["learning_rates"]) + ", seed 0 each, the preset's "
+           "budget; the rule picks the rate whose run ends with the highest paper-weight episode "
+           "reward (mean of its last 10 % of iterations). Final rewards: "
+           + "; ".join(f"{NAMES[a]} " + ", ".join(f"{lr} -> {r:.1f}"
+                                                   for lr, r in t["final"][a].items())
+                       for a in ("mash", "ppo"))
+           + f". Picked: MASH {t['picked']['mash']:g}, PPO {t['picked']['ppo']:g}.\n")
   return md, data, dirs
 
 
@@ -290,6 +331,9 @@ def main(argv=None) -> None:
   p.add_argument("--eval-seconds", type=float, default=20.0)
   p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                  help="override a config field of both methods (repeatable)")
+  p.add_argument("--learning-rates", default="1e-3,3e-4", metavar="LR,LR",
+                 help="the search both methods get: seed 0 at each rate, the same rule picks "
+                      "each method's (default 1e-3,3e-4)")
   p.add_argument("--no-progress", action="store_true")
   args = p.parse_args(argv)
   with common.user_errors():
@@ -301,6 +345,13 @@ def main(argv=None) -> None:
       raise common.UserError(f"--task '{args.task}' is unknown; expected bipedal or armswing")
     if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
       raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
+    try:
+      learning_rates = sorted({float(x) for x in args.learning_rates.split(",") if x.strip()})
+    except ValueError:
+      learning_rates = []
+    if not learning_rates or not all(0 < lr < 1 for lr in learning_rates):
+      raise common.UserError(f"--learning-rates '{args.learning_rates}': expected rates in (0, 1) "
+                             "separated by commas, e.g. 1e-3,3e-4")
     preset = args.preset or common.default_preset()[0]
     cfgs = {algo: experiment.make_config(args.task, algo, preset, 1, "none", args.set)
             for algo in ("mash", "ppo")}
@@ -310,26 +361,42 @@ def main(argv=None) -> None:
           f"method and seed -> {out} (a finished seed is reused, an interrupted one resumed)",
           flush=True)
     eval_cfg = evaluation.EvalConfig(num_episodes=args.episodes, episode_s=args.eval_seconds)
+
+    def train_seed(algo: str, cfg, lr: float, seed: int) -> Path:
+      d = lr_dir(out, algo, lr) / f"seed{seed}"
+      state = seed_state(d, cfg.train.num_iterations)
+      what = {"done": "trained; reusing it", "resume": "resuming", "new": "training"}[state]
+      print(f"[{algo} lr {lr:g} seed {seed}] {what}", flush=True)
+      if state != "done":
+        command = [sys.executable, "-m", f"experiments.{args.task}"]
+        if state == "resume":
+          command += ["--resume", str(d)]
+        else:
+          command += ["--algo", algo, "--preset", preset, "--out", str(d),
+                      "--set", f"train.seed={seed}", "--set", f"train.learning_rate={lr:g}"]
+          command += [x for o in args.set for x in ("--set", o)]
+        if args.no_progress:
+          command.append("--no-progress")
+        code = subprocess.call(command)
+        if code != 0:
+          raise common.UserError(f"the {algo} run of seed {seed} stopped with status {code}; "
+                                 f"run the same command again to resume it ({d})")
+      return d
+
+    # The same small search for both methods: seed 0 at each rate, the same rule picks.
+    finals = {algo: {lr: final_reward(train_seed(algo, cfg, lr, 0)) for lr in learning_rates}
+              for algo, cfg in cfgs.items()}
+    picked = pick_learning_rates(finals)
+    (out / "tuning.json").write_text(json.dumps({
+        "learning_rates": learning_rates, "seed": 0, "picked": picked,
+        "final": {a: {f"{lr:g}": r for lr, r in f.items()} for a, f in finals.items()},
+        "rule": "highest mean paper-weight episode reward over the last 10 % of iterations"},
+        indent=2))
+    print(f"learning rates picked by the search: MASH {picked['mash']:g}, PPO {picked['ppo']:g}",
+          flush=True)
     for seed in range(args.seeds):
       for algo, cfg in cfgs.items():
-        d = out / algo / f"seed{seed}"
-        state = seed_state(d, cfg.train.num_iterations)
-        what = {"done": "trained; reusing it", "resume": "resuming", "new": "training"}[state]
-        print(f"[{algo} seed {seed}] {what}", flush=True)
-        if state != "done":
-          command = [sys.executable, "-m", f"experiments.{args.task}"]
-          if state == "resume":
-            command += ["--resume", str(d)]
-          else:
-            command += ["--algo", algo, "--preset", preset, "--out", str(d),
-                        "--set", f"train.seed={seed}"]
-            command += [x for o in args.set for x in ("--set", o)]
-          if args.no_progress:
-            command.append("--no-progress")
-          code = subprocess.call(command)
-          if code != 0:
-            raise common.UserError(f"the {algo} run of seed {seed} stopped with status {code}; "
-                                   f"run the same command again to resume it ({d})")
+        d = train_seed(algo, cfg, picked[algo], seed)
         metrics_file = d / "eval" / "metrics.json"
         fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
                  .get("eval_config", {}).get("num_episodes") == args.episodes)

@@ -368,6 +368,16 @@ def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
   compare.report("bipedal", out, "smoke")
   for name in ("report.md", "report.json", "reward_curves.png", "hip_pitch.png"):
     assert (out / name).stat().st_size > 0
+  # The tuning: one rule for both methods (the higher final reward; a tie to the smaller rate),
+  # and the seed runs then live under the picked rate.
+  assert compare.pick_learning_rates({"mash": {1e-3: 150.0, 3e-4: 120.0},
+                                      "ppo": {1e-3: 90.0, 3e-4: 90.0}}) == \
+      {"mash": 1e-3, "ppo": 3e-4}
+  final = compare.final_reward(out / "mash" / "seed0")
+  curve = compare.method_curves(out / "mash" / "seed0")[1][0]
+  assert final == pytest.approx(curve[-1:].mean())  # 10 iterations: the last one
+  (out / "tuning.json").write_text(json.dumps({"picked": {"mash": 1e-3, "ppo": 3e-4}}))
+  assert compare.method_dir(out, "ppo") == out / "ppo" / "lr0.0003"
 
 
 def test_expected_duration_line_from_the_timed_calls():
