@@ -628,3 +628,26 @@ def test_metrics_sum_to_reward(random_rollout):
   np.testing.assert_allclose(tr["metrics"]["paper_reward"], tr["reward"], rtol=1e-6)
   assert np.all(tr["reward"] >= 0.0)
   assert np.any(total > 0.0)  # the unclipped branch is exercised too
+
+
+def test_assemble_action_puts_each_agent_on_its_own_joints(armswing_env):
+  """Seam between the agents' actions and the env's joints, by hand: legs agent k acts 100 k + j
+  on its joint j, arms agent k 200 + 10 k + j. Armswing controls the T1's joints in spec order
+  (left leg 6, right leg 6, left arm 4, right arm 4), so the flat action reads those numbers in
+  that order, and each lands on a joint of its own limb."""
+  from mash import agents
+  legs = np.array([[100 * k + j for j in range(6)] for k in range(2)], np.float32)
+  arms = np.array([[200 + 10 * k + j for j in range(4)] for k in range(2)], np.float32)
+  flat = np.asarray(agents.assemble_action(armswing_env.agent_groups,
+                                           {"legs": jnp.asarray(legs), "arms": jnp.asarray(arms)}))
+  expected = [0, 1, 2, 3, 4, 5, 100, 101, 102, 103, 104, 105,
+              200, 201, 202, 203, 210, 211, 212, 213]
+  np.testing.assert_array_equal(flat, expected)
+  names = _controlled_joints(armswing_env)
+  assert names[:6] == list(T1.limbs[0].joints) and names[6:12] == list(T1.limbs[1].joints)
+  assert all(n.startswith("Left_") for n in names[:6] + names[12:16])
+  assert all(n.startswith("Right_") for n in names[6:12] + names[16:])
+  # The env's joint targets: each value scaled onto the joint it names (default pose + 0.25 a).
+  target = np.asarray(armswing_env._full_target(jnp.asarray(flat) / 1000.0))
+  default = np.array([T1.default_pose[j] for j in T1.joints])
+  np.testing.assert_allclose(target - default, 0.25 * np.asarray(expected) / 1000.0, atol=1e-6)
