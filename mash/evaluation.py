@@ -152,9 +152,14 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   traj = {k: np.asarray(v) for k, v in traj.items()}
   done = traj.pop("done")
   traj["friction"] = traj["friction"][:, 0]
-  traj["alive"] = (np.cumsum(done, axis=1) - done == 0).astype(np.float32)
+  traj["alive"] = alive_mask(done)
   traj["dt"] = np.asarray(env.dt)
   return traj
+
+
+def alive_mask(done: np.ndarray) -> np.ndarray:
+  """``[E, T]`` 1 up to and including the step that ended the episode (its fall), 0 after."""
+  return (np.cumsum(done, axis=1) - done == 0).astype(np.float32)
 
 
 def friction_and_push(start_s: float, duration_s: float, dt: float) -> Perturbation:

@@ -196,6 +196,20 @@ def test_evaluate_reports_arm_leg_coordination_when_the_arms_act():
   assert "C_limb_arm_leg" not in evaluation.evaluate(traj, 0.4)
 
 
+def test_evaluation_wiring_left_hip_first_and_alive_until_the_fall(smoke_config):
+  """Seams of the evaluation: the hip-pitch index is (left, right) and the alive mask keeps the
+  step that fell (its state is the fall's) and drops everything after, also a second done."""
+  from mash import env as env_lib, evaluation
+  env = env_lib.MashEnv(smoke_config.env)
+  left, right = (env.spec.joints[i] for i in evaluation.hip_pitch_index(env))
+  assert left == "Left_Hip_Pitch" and right == "Right_Hip_Pitch"
+  shoulders = [env.spec.joints[i] for i in evaluation.shoulder_pitch_index(env)]
+  assert shoulders == ["Left_Shoulder_Pitch", "Right_Shoulder_Pitch"]
+  done = np.array([[0, 0, 1, 0, 1], [0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], np.float32)
+  np.testing.assert_array_equal(evaluation.alive_mask(done),
+                                [[1, 1, 1, 0, 0], [1, 1, 1, 1, 1], [1, 0, 0, 0, 0]])
+
+
 def test_evaluation_without_pushes_keeps_the_other_randomization():
   """``--no-push``: pushes drawn as zero, every other randomized range as trained; its files go
   beside ``eval/``, never over it."""
