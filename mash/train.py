@@ -280,6 +280,24 @@ def _sum(x: jax.Array, axis_name: str | None) -> jax.Array:
   return s if axis_name is None else jax.lax.psum(s, axis_name)
 
 
+def loss_gradients(params: nets.Params, normalizer: normalization.Normalizer | None,
+                   batch: losses.LossBatch, networks: nets.Networks, config: TrainConfig,
+                   axis_name: str | None = None) -> tuple[nets.Params, Metrics]:
+  """Gradient of the MAPPO loss (:func:`mash.losses.mappo_loss`) on this device's part of a
+  minibatch, and the loss metrics; with ``axis_name`` both are averaged over the devices, so
+  equal parts on D devices give the gradient of the whole minibatch on one device.
+
+  Returns:
+    ``(grads, metrics)``: grads with the structure of ``params``; metrics as ``mappo_loss``'s.
+  """
+  grads, metrics = jax.grad(losses.mappo_loss, has_aux=True)(params, normalizer, batch, networks,
+                                                             config, axis_name)
+  if axis_name is not None:
+    grads = jax.lax.pmean(grads, axis_name)
+    metrics = jax.lax.pmean(metrics, axis_name)
+  return grads, metrics
+
+
 def _screen_blowups(state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Reward ``[B]``, ``next_critic_obs`` ``[B, ...]`` and the blow-up mask ``[B]`` of a batched step.
 
@@ -384,11 +402,7 @@ def make_train(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
   def minibatch_step(opt: OptimizerState, batch: losses.LossBatch,
                      normalizer: normalization.Normalizer | None) -> tuple[OptimizerState, Metrics]:
     """One MAPPO gradient step (gradients averaged over devices when sharded)."""
-    grad_fn = jax.grad(losses.mappo_loss, has_aux=True)
-    grads, metrics = grad_fn(opt.params, normalizer, batch, networks, config, axis_name)
-    if axis_name is not None:
-      grads = jax.lax.pmean(grads, axis_name)
-      metrics = jax.lax.pmean(metrics, axis_name)
+    grads, metrics = loss_gradients(opt.params, normalizer, batch, networks, config, axis_name)
     opt_state = opt.opt_state
     if config.learning_rate_schedule == 'adaptive_kl':
       # The KL of the current policy from the rollout's on this minibatch, before the step (as
