@@ -27,6 +27,7 @@ from pathlib import Path
 from experiments import common
 
 STAGES = ("physics", "env", "mash", "ppo", "brax_ppo")
+MAX_BATCH = 2**20  # envs; TrainConfig's own cap (mash.config.SIZE_CAPS)
 
 
 def _device_kind() -> str:
@@ -328,14 +329,25 @@ def main(argv=None) -> None:
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
   args = p.parse_args(argv)
   with common.user_errors():
+    common.check_paths({"--out": args.out, "--dir": args.dir})
     if args.task not in ("bipedal", "armswing"):
       raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
+    if args.batch is not None and not 0 <= args.batch <= MAX_BATCH:
+      raise common.UserError(f"--batch must be a number of envs in [1, {MAX_BATCH}] (0: the "
+                             f"default), got {args.batch}")
+    if args.sweep in ("batch", "physics"):
+      common.check_writable_dir(args.dir, "--dir")
+    else:
+      common.check_writable_file(
+          args.out or ("breakdown.json" if args.breakdown else "benchmark.json"), "--out")
     if args.sweep == "batch":
       try:
         batches = [int(b) for b in args.batches.split(",")]
       except ValueError:
-        raise common.UserError(f"--batches '{args.batches}': expected comma-separated integers, "
-                               "e.g. 64,256,1024") from None
+        batches = []
+      if not batches or not all(1 <= b <= MAX_BATCH for b in batches):
+        raise common.UserError(f"--batches '{args.batches}': expected comma-separated numbers of "
+                               f"envs in [1, {MAX_BATCH}], e.g. 64,256,1024")
       rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch")
       print(json.dumps(rows, indent=2))
       return

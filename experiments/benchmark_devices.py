@@ -39,6 +39,9 @@ from pathlib import Path
 from experiments import common
 
 WORKER_TIMEOUT_S = 600
+PLATFORMS = ('cpu', 'gpu', 'cuda', 'rocm', 'tpu')  # JAX_PLATFORMS values for the workers
+# Sanity caps: TrainConfig's own on the envs; steps x batch x action floats fit in memory.
+MAX_BATCH, MAX_STEPS, MAX_REPEATS = 2**20, 100_000, 1000
 
 
 # --------------------------------------------------------------------------------------------------
@@ -348,14 +351,23 @@ def main(argv=None) -> None:
     worker_main(args)
     return
   with common.user_errors():
-    if args.batch < 2 or args.batch % 2:
-      raise common.UserError(f'--batch must be an even number >= 2, got {args.batch}')
-    if args.steps < 1 or args.repeats < 1:
-      raise common.UserError('--steps and --repeats must be >= 1')
-    if args.train and (args.train_batch < 4 or args.train_batch % 4):
-      raise common.UserError(f'--train-batch must be a multiple of 4, got {args.train_batch}')
+    common.check_path(args.out, '--out')
+    if args.batch < 2 or args.batch % 2 or args.batch > MAX_BATCH:
+      raise common.UserError(f'--batch must be an even number in [2, {MAX_BATCH}], got '
+                             f'{args.batch}')
+    if not (1 <= args.steps <= MAX_STEPS and 1 <= args.repeats <= MAX_REPEATS):
+      raise common.UserError(f'--steps must be in [1, {MAX_STEPS}] and --repeats in [1, '
+                             f'{MAX_REPEATS}], got {args.steps} and {args.repeats}')
+    if args.train and (args.train_batch < 4 or args.train_batch % 4
+                       or args.train_batch > MAX_BATCH):
+      raise common.UserError(f'--train-batch must be a multiple of 4 in [4, {MAX_BATCH}], got '
+                             f'{args.train_batch}')
     if args.task not in ('bipedal', 'armswing'):
       raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
+    if args.platform not in PLATFORMS:
+      raise common.UserError(f"--platform '{args.platform}' is unknown; expected one of "
+                             f"{', '.join(PLATFORMS)}")
+    common.check_writable_file(Path(args.out).with_suffix('.json'), '--out')
     result = run(args)
     _write(result, Path(args.out))
     print(json.dumps(result, indent=2))

@@ -20,19 +20,69 @@ def user_errors() -> Iterator[None]:
 
   A Ctrl-C that reaches here (before training's own signal handling is in place, or a second
   Ctrl-C that aborts a run) prints one line and exits 130, also without a traceback.
+
+  Standard output that refuses what it cannot encode is set to escape it instead: a file name
+  with bytes that are not UTF-8 (argv holds them as lone surrogates) is then printed as
+  ``\\udcff`` rather than ending the command with a UnicodeEncodeError.
   """
-  from mash import checkpoint, experiment, robots, runs
-  known = (UserError, experiment.ConfigError, runs.RunError, robots.SpecError,
+  from mash import checkpoint, experiment, policy, robots  # not mash.runs: it imports training
+  known = (UserError, experiment.ConfigError, policy.RunError, robots.SpecError,
            checkpoint.CheckpointError)
+  if getattr(sys.stdout, "errors", None) == "strict" and hasattr(sys.stdout, "reconfigure"):
+    sys.stdout.reconfigure(errors="backslashreplace")
   try:
     yield
   except known as e:
-    print(f"error: {e}", file=sys.stderr, flush=True)
+    print(f"error: {one_line(str(e))}", file=sys.stderr, flush=True)
     sys.exit(2)
   except KeyboardInterrupt:
     print("\ninterrupted (files already on disk are kept; a run resumes from its last complete "
           "checkpoint)", file=sys.stderr, flush=True)
     sys.exit(130)
+
+
+def one_line(text: str) -> str:
+  """``text`` as one printable line: line breaks shown as ``\\n`` / ``\\r`` (a value typed with
+  one, such as a path, must not split an error message) and the undecodable bytes of a file name
+  (lone surrogates, which no stream can encode) as ``\\udcff``."""
+  text = text.replace("\r", "\\r").replace("\n", "\\n")
+  return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def shown_path(path: str | os.PathLike, limit: int = 120) -> str:
+  """``path`` for a message: as it is, or its first and last characters around an ellipsis and
+  its length when it is longer than ``limit``."""
+  text = str(path)
+  if len(text) <= limit:
+    return text
+  return f"{text[:limit // 2]}...{text[-limit // 4:]} ({len(text)} characters)"
+
+
+def check_path(path: str, flag: str) -> None:
+  """Checks, before any work, that ``path`` can name a file or folder on this system: not empty,
+  no NUL character, not too long (each name, and the whole path), representable in the file
+  system's encoding. Whether it exists or can be written is for the caller to check.
+
+  Raises:
+    UserError: one line naming ``flag``, the path (shortened when long) and the reason.
+  """
+  if not path.strip():
+    raise UserError(f"{flag} is empty; expected a path")
+  try:
+    os.stat(path)
+  except (FileNotFoundError, NotADirectoryError, PermissionError):
+    pass  # a path that does not exist (yet), or not here, is the caller's to judge
+  except OSError as e:
+    raise UserError(f"{flag} '{shown_path(path)}' cannot be used: {e.strerror or e}") from None
+  except ValueError as e:  # a NUL character, or one the file system's encoding cannot hold
+    raise UserError(f"{flag} '{shown_path(path)}' cannot be used: {e}") from None
+
+
+def check_paths(paths: dict[str, str | None]) -> None:
+  """:func:`check_path` on each ``{flag: path}`` given (a None is a flag left out)."""
+  for flag, path in paths.items():
+    if path is not None:
+      check_path(path, flag)
 
 
 def _unwritable(folder) -> str | None:
@@ -90,7 +140,7 @@ class Parser(argparse.ArgumentParser):
   """argparse whose errors are one line (``error: ...``) with exit status 2."""
 
   def error(self, message: str):  # noqa: D401 - argparse API
-    print(f"error: {message} (see --help)", file=sys.stderr, flush=True)
+    print(f"error: {one_line(message)} (see --help)", file=sys.stderr, flush=True)
     sys.exit(2)
 
 
@@ -104,6 +154,7 @@ def default_preset() -> tuple[str, str]:
 # ------------------------------------------------------------------ several processes (hosts)
 DISTRIBUTED_ENV = {"coordinator": "MASH_COORDINATOR", "num_processes": "MASH_NUM_PROCESSES",
                    "process_id": "MASH_PROCESS_ID"}
+MAX_LOCAL_PROCESSES = 64
 
 
 def add_distributed_args(parser: argparse.ArgumentParser) -> None:
@@ -205,6 +256,9 @@ def local_processes_wanted(args: argparse.Namespace, preset: str, seeds: int) ->
     n = 0
   if n < 1:
     raise UserError(f"--local-processes must be 'auto' or a whole number >= 1, got '{value}'")
+  if n > MAX_LOCAL_PROCESSES:
+    raise UserError(f"--local-processes must be at most {MAX_LOCAL_PROCESSES} (processes on one "
+                    f"host), got {n}")
   if n > 1 and by_hand:
     raise UserError("--local-processes cannot be combined with --coordinator / --num-processes / "
                     "--process-id (they join processes by hand)")

@@ -341,10 +341,17 @@ def main(argv=None) -> None:
     import sys
     from mash import evaluation, experiment
     from experiments.evaluate import evaluate_run
+    common.check_paths({"--out": args.out})
     if args.task not in ("bipedal", "armswing"):
       raise common.UserError(f"--task '{args.task}' is unknown; expected bipedal or armswing")
     if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
       raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
+    try:
+      evaluation.check_config(
+          evaluation.EvalConfig(num_episodes=args.episodes, episode_s=args.eval_seconds),
+          {"num_episodes": "--episodes", "episode_s": "--eval-seconds"})
+    except ValueError as e:
+      raise common.UserError(str(e)) from None
     try:
       learning_rates = sorted({float(x) for x in args.learning_rates.split(",") if x.strip()})
     except ValueError:

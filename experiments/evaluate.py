@@ -10,6 +10,8 @@ floor-friction range, appends ``_friction_<LO>-<HI>``), so a diagnostic never re
 evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
 the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name;
 ``--seed S`` draws other episodes (floors, robots, pushes) and appends ``_seed<S>``.
+``DIR`` may also be a policy folder (:mod:`mash.policy`): its one policy, no ``T_conv`` (no
+learning curve), the same files in the folder.
 
 ``--tracking`` measures how the policy follows its commands instead: ``--episodes`` (default 64)
 episodes per command of ``mash.evaluation.TRACKING_GRID`` (standing; vx -0.3 to 0.8; vy +-0.2;
@@ -32,25 +34,25 @@ from experiments import common
 
 def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
                  iteration: int | None = None) -> dict:
-  """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``);
-  returns (and writes) the metrics."""
-  from mash import env as env_lib, evaluation, metrics as metrics_lib, networks, runs
+  """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``), or
+  the policy of a policy folder (:mod:`mash.policy`); returns (and writes) the metrics."""
+  from mash import env as env_lib, evaluation, metrics as metrics_lib, policy as policy_lib
 
   eval_cfg = eval_cfg or evaluation.EvalConfig()
-  run = runs.load_run(run_dir, iteration)
-  cfg = run.config
+  policies = policy_lib.load_all(run_dir, iteration)
+  cfg = policies[0].config
   env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, eval_cfg))
-  policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
 
-  progress = runs.read_progress(run_dir, per_seed=True)
+  # A policy folder has no learning curve: no T_conv.
+  progress = ({} if policy_lib.is_policy_folder(run_dir)
+              else policy_lib.read_progress(run_dir, per_seed=True))
   # T_conv on the reward under the paper's weights, whatever curricula trained (older runs: the
   # trained reward, the only one they logged).
   curve_key = "paper_episode_reward" if "paper_episode_reward" in progress else "episode_reward"
   per_seed, trajs = [], []
-  for s in range(cfg.seeds):
-    params = runs.seed_slice(run.params, s, cfg.seeds)
-    nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
-    traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), eval_cfg)
+  for policy in policies:
+    s = policy.seed
+    traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
     curve = progress[curve_key][progress["seed"] == s] if progress else None
     per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve,
                                         arms_act=cfg.env.task == "armswing"))
@@ -63,7 +65,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys if per_seed[0][k] is not None}
   result["T_conv"] = result.get("T_conv")
   result["command_vx"] = eval_cfg.command_vx
-  result["iteration"] = run.iteration
+  result["iteration"] = policies[0].iteration
   result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"]
                    for k in keys if per_seed[0][k] is not None}
   merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
@@ -92,32 +94,31 @@ def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
                  write: bool = True) -> dict:
   """Rolls every seed of a run's policy over the command grid (``evaluation.TRACKING_GRID``,
   ``eval_cfg.num_episodes`` episodes per command) and returns (and writes) ``tracking.json``'s
-  content: the episodes of all seeds together, and ``per_seed`` when the run has several."""
-  from mash import env as env_lib, evaluation, networks, runs
+  content: the episodes of all seeds together, and ``per_seed`` when the run has several (a
+  policy folder: its one policy)."""
+  from mash import env as env_lib, evaluation, policy as policy_lib
 
-  run = runs.load_run(run_dir, iteration)
-  cfg = run.config
+  policies = policy_lib.load_all(run_dir, iteration)
+  cfg = policies[0].config
+  seeds = len(policies)
   commands = evaluation.tracking_commands(eval_cfg.num_episodes)
   grid_cfg = dataclasses.replace(eval_cfg, num_episodes=len(commands))
   env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, grid_cfg))
-  policy_fn = networks.make_policy_fn(run.trainer.networks, deterministic=True)
   per_seed, trajs = [], []
-  for s in range(cfg.seeds):
-    params = runs.seed_slice(run.params, s, cfg.seeds)
-    nrm = runs.seed_slice(run.normalizer, s, cfg.seeds)
-    traj = evaluation.rollout(env, lambda obs: policy_fn(params, nrm, obs), grid_cfg,
+  for policy in policies:
+    traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), grid_cfg,
                               commands=commands)
     per_seed.append(evaluation.tracking(traj, commands))
     trajs.append(traj)
   merged = {k: np.concatenate([t[k] for t in trajs])
             for k in ("world_velocity", "euler", "alive", "command")}
-  all_commands = np.concatenate([commands] * cfg.seeds)
+  all_commands = np.concatenate([commands] * seeds)
   result = evaluation.tracking(merged, all_commands)
-  result["iteration"] = run.iteration
-  result["seeds"] = cfg.seeds
+  result["iteration"] = policies[0].iteration
+  result["seeds"] = seeds
   result["eval_config"] = {k: (list(v) if isinstance(v, tuple) else v)
                            for k, v in dataclasses.asdict(eval_cfg).items()}
-  if cfg.seeds > 1:
+  if seeds > 1:
     result["all_episodes"] = {
       k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
           if all(m["all_episodes"][k] is not None for m in per_seed) else None)
@@ -132,7 +133,8 @@ def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
     np.savez_compressed(out / "tracking_trajectories.npz", commands=merged["command"][:, -1],
                         velocity=velocity.astype(np.float32), alive=merged["alive"],
                         dt=trajs[0]["dt"])
-    plot_tracking(result, out / "tracking.png", f"{cfg.task} {cfg.algo}, iteration {run.iteration}")
+    plot_tracking(result, out / "tracking.png",
+                  f"{cfg.task} {cfg.algo}, iteration {result['iteration']}")
   return result
 
 
@@ -233,9 +235,14 @@ def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float
   plt.close(fig)
 
 
+# The flag that sets each EvalConfig field, to name it in an error.
+EVAL_FLAGS = {"command_vx": "--command-vx", "num_episodes": "--episodes", "episode_s": "--seconds",
+              "push_interval_s": "--push-interval", "friction": "--friction", "seed": "--seed"}
+
+
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.evaluate", description=__doc__.splitlines()[0])
-  p.add_argument("--run", required=True, help="run directory")
+  p.add_argument("--run", required=True, help="run directory, or policy folder (mash.policy)")
   p.add_argument("--episodes", type=int, default=None,
                  help="episodes (default 32), or episodes per command with --tracking (default 64)")
   p.add_argument("--seconds", type=float, default=20.0, help="episode duration")
@@ -266,6 +273,7 @@ def main(argv=None) -> None:
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import evaluation
+    common.check_path(args.run, "--run")
     if args.tracking and args.command_vx is not None:
       raise common.UserError("--tracking rolls out its own grid of commands; drop --command-vx")
     if args.episodes is None:
@@ -289,6 +297,10 @@ def main(argv=None) -> None:
                                 pushes=not args.no_push, push_interval_s=args.push_interval,
                                 friction=None if args.friction is None else tuple(args.friction),
                                 **({} if args.seed is None else {"seed": args.seed}))
+    try:
+      evaluation.check_config(cfg, EVAL_FLAGS)
+    except ValueError as e:
+      raise common.UserError(str(e)) from None
     dr = "off" if args.no_dr else ("on without pushes" if args.no_push else "on")
     if args.push_interval is not None:
       dr += (", a new push every control step" if args.push_interval == 0

@@ -2,7 +2,8 @@
 
 Exports the latest checkpoint (default ``DIR/policy.onnx``; see :mod:`mash.export` and
 ``docs/deploy.md`` for the inputs, outputs and metadata), then checks it: onnxruntime against the
-JAX policy on random observations, max |difference| at most ``--tolerance``.
+JAX policy on random observations, max |difference| at most ``--tolerance``. ``DIR`` may also be a
+policy folder (:mod:`mash.policy`).
 """
 
 from __future__ import annotations
@@ -14,30 +15,32 @@ from experiments import common
 
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.export", description=__doc__.splitlines()[0])
-  p.add_argument("--run", required=True, help="run directory")
+  p.add_argument("--run", required=True, help="run directory, or policy folder (mash.policy)")
   p.add_argument("--out", default=None, help="ONNX file to write (default: DIR/policy.onnx)")
   p.add_argument("--seed", type=int, default=0, help="which seed of a multi-seed run")
   p.add_argument("--check", type=int, default=256, help="random observations in the check (0: skip)")
   p.add_argument("--tolerance", type=float, default=1e-5, help="max |onnx - jax| allowed")
   args = p.parse_args(argv)
   with common.user_errors():
-    from mash import export, runs
+    from mash import export, policy as policy_lib
+    common.check_paths({"--run": args.run, "--out": args.out})
     if args.check < 0:
       raise common.UserError(f"--check must be >= 0, got {args.check}")
     out = Path(args.out) if args.out else Path(args.run) / "policy.onnx"
     if out.is_dir():
       raise common.UserError(f"--out '{out}' is a directory; expected a file path like policy.onnx")
-    runs.load_config(args.run)  # a missing run is named before the output path
+    policy_lib.load_config(args.run)  # a missing run is named before the output path
     common.check_writable_file(out, "--out")
-    run = runs.load_run(args.run)
+    policy = policy_lib.load(args.run, seed=args.seed)
     try:
-      parts = export.policy_parts(run, args.seed)
-      path = export.export_policy(run, out, args.seed)
+      parts = export.policy_parts(policy)
+      path = export.export_policy(parts, out)
     except export.ExportError as e:
       raise common.UserError(str(e)) from None
     meta = export.read_metadata(path)
-    print(f"exported {args.run} (iteration {run.iteration}, seed {args.seed}, "
-          f"{run.config.task}/{run.config.algo}) -> {path} ({path.stat().st_size / 1024:.0f} KiB): "
+    print(f"exported {args.run} (iteration {policy.iteration}, seed {policy.seed}, "
+          f"{policy.config.task}/{policy.config.algo}) -> {path} "
+          f"({path.stat().st_size / 1024:.0f} KiB): "
           f"{len(meta['joint_order'])} joints in, {len(meta['controlled_joints'])} targets out "
           f"at {meta['control_rate_hz']:g} Hz", flush=True)
     if args.check:

@@ -103,16 +103,19 @@ def main(argv=None) -> None:
 
   viewer = args.video is None and has_display()
   video = args.video
-  if not viewer:  # MUJOCO_GL is read when mujoco is first imported: choose it before mash is
-    if video is None:
-      video = f"{Path(args.policy.rstrip('/')).stem or 'policy'}.mp4"
-      say(f"no display: playing headless, the video goes to {video}")
-    if Path(video).suffix.lower() != ".mp4":
-      p.error(f"--video '{video}': expected a .mp4 file name")
-    try:
+  try:
+    common.check_paths({"--policy": args.policy, "--video": video})
+    if not viewer:  # MUJOCO_GL is read when mujoco is first imported: choose it before mash is
+      if video is None:
+        video = f"{Path(args.policy.rstrip('/')).stem or 'policy'}.mp4"
+        common.check_path(video, "the video's file name (--video)")
+        say(f"no display: playing headless, the video goes to {video}")
+      if Path(video).suffix.lower() != ".mp4":
+        p.error(f"--video '{common.shown_path(video)}': expected a .mp4 file name")
       common.check_writable_file(video, "--video")
-    except common.UserError as e:
-      p.error(str(e))
+  except common.UserError as e:
+    p.error(str(e))
+  if not viewer:
     from experiments.sim2sim import headless_gl
     backend, reason = headless_gl()
     if backend is None:

@@ -5,7 +5,7 @@ onnxruntime in MuJoCo C on a different physics setup (1-2 ms steps, implicit-fas
 iterations, full collision geometry; PD in NumPy on every physics step, 50 Hz control) at a fixed
 forward command, and writes ``DIR/sim2sim/report.json``, ``report.md`` (MuJoCo C against the MJX
 evaluation: ``DIR/eval/metrics.json`` when it exists, else a short ``evaluate_run``) and
-``trajectories.npz``.
+``trajectories.npz``. ``DIR`` may also be a policy folder (:mod:`mash.policy`).
 
 Examples:
   python -m experiments.sim2sim --run runs/bipedal_mash_cpu_X
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -60,41 +61,43 @@ def headless_gl() -> tuple[str | None, str]:
 
 
 def latest_step(run_dir: Path) -> int | None:
-  """The newest complete checkpoint step of a run, from its directory names."""
+  """The newest complete checkpoint step of a run, from its directory names (None for a policy
+  folder)."""
   steps = [int(p.name) for p in (run_dir / "checkpoints").glob("*")
            if p.name.isdigit() and not any(p.glob("*.orbax-checkpoint-tmp*"))]
   return max(steps) if steps else None
 
 
-def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> tuple[Path, object]:
-  """The ONNX policy to run: ``--onnx``, an up-to-date ``DIR/policy.onnx``, or a fresh export.
-
-  Returns:
-    ``(path, loaded_run_or_None)``.
-  """
-  from mash import export, runs
+def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> Path:
+  """The ONNX policy to run: ``--onnx``, an up-to-date ``DIR/policy.onnx``, or a fresh export
+  (``DIR``: a run directory or a policy folder)."""
+  from mash import export, policy as policy_lib
   if onnx_arg:
     path = Path(onnx_arg)
     if not path.is_file():
       raise common.UserError(f"--onnx '{path}' does not exist; expected an exported policy")
     say(f"using {path} as given")
-    return path, None
+    return path
   path = run_dir / "policy.onnx"
   if path.is_file():
     try:
       meta = export.read_metadata(path)
     except Exception:  # an unreadable file is replaced below
       meta = {}
-    if (meta.get("checkpoint_iteration") == latest_step(run_dir) and meta.get("seed") == seed):
+    current = (latest_step(run_dir), seed)
+    if policy_lib.is_policy_folder(run_dir) and seed == 0:  # its one policy
+      info = policy_lib.folder_info(run_dir)
+      current = (info["iteration"], info["seed"])
+    if (meta.get("checkpoint_iteration"), meta.get("seed")) == current:
       say(f"reusing {path} (checkpoint iteration {meta['checkpoint_iteration']})")
-      return path, None
-  run = runs.load_run(run_dir)
+      return path
+  policy = policy_lib.load(run_dir, seed=seed)
   try:
-    export.export_policy(run, path, seed)
+    export.export_policy(policy, path)
   except export.ExportError as e:
     raise common.UserError(str(e)) from None
-  say(f"exported {path} (checkpoint iteration {run.iteration}, seed {seed})")
-  return path, run
+  say(f"exported {path} (checkpoint iteration {policy.iteration}, seed {policy.seed})")
+  return path
 
 
 def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, dr: bool, say
@@ -123,11 +126,17 @@ def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float,
                                     "not written to eval/)")
 
 
+# The flag that sets each Sim2SimConfig field, to name it in an error.
+SIM2SIM_FLAGS = {"command_vx": "--command-vx", "num_episodes": "--episodes",
+                 "episode_s": "--seconds", "sim_dt": "--sim-dt", "iterations": "--iterations",
+                 "seed": "--seed"}
+
+
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.sim2sim", description=__doc__.splitlines()[0],
                     formatter_class=argparse.RawDescriptionHelpFormatter,
                     epilog="\n".join(__doc__.splitlines()[2:]))
-  p.add_argument("--run", required=True, help="run directory")
+  p.add_argument("--run", required=True, help="run directory, or policy folder (mash.policy)")
   p.add_argument("--episodes", type=int, default=4, help="MuJoCo C episodes")
   p.add_argument("--seconds", type=float, default=20.0, help="episode duration (s)")
   p.add_argument("--command-vx", type=float, default=0.4, help="forward command (m/s)")
@@ -148,6 +157,12 @@ def main(argv=None) -> None:
   args = p.parse_args(argv)
 
   say = lambda msg: print(msg, flush=True)
+  try:
+    common.check_paths({"--run": args.run, "--onnx": args.onnx, "--video": args.video})
+  except common.UserError as e:
+    p.error(str(e))
+  if args.video_seconds is not None and not 0 < args.video_seconds < math.inf:
+    p.error(f"--video-seconds must be a finite number of seconds > 0, got {args.video_seconds}")
   if args.episodes < 1 or args.seconds <= 0 or args.mjx_episodes < 1:
     p.error("--episodes and --mjx-episodes must be >= 1 and --seconds > 0")
   if args.iterations < 1:
@@ -171,20 +186,26 @@ def main(argv=None) -> None:
           os.environ.setdefault("PYOPENGL_PLATFORM", backend)
 
   with common.user_errors():
-    from mash import env as env_lib, evaluation, export, runs, sim2sim
+    from mash import env as env_lib, evaluation, export, policy as policy_lib, sim2sim
     import jax
     import numpy as np
 
     run_dir = Path(args.run)
-    config = runs.load_config(run_dir)
+    config = policy_lib.load_config(run_dir)
     common.check_writable_dir(run_dir / "sim2sim", "the run directory")
     if args.video is not None:
       common.check_writable_file(args.video, "--video")
     cfg = sim2sim.Sim2SimConfig(command_vx=args.command_vx, num_episodes=args.episodes,
                                 episode_s=args.seconds, sim_dt=args.sim_dt,
                                 iterations=args.iterations, seed=args.seed)
-    onnx_path, run = resolve_onnx(run_dir, args.onnx, args.seed, say)
-    env = run.trainer.env if run is not None else env_lib.MashEnv(config.env)
+    try:
+      sim2sim.check_config(cfg, SIM2SIM_FLAGS)
+      evaluation.check_config(evaluation.EvalConfig(num_episodes=args.mjx_episodes),
+                              {"num_episodes": "--mjx-episodes"})
+    except ValueError as e:
+      raise common.UserError(str(e)) from None
+    onnx_path = resolve_onnx(run_dir, args.onnx, args.seed, say)
+    env = env_lib.MashEnv(config.env)
     try:
       if args.viewer:
         say("viewer: up/down vx +-0.1 m/s, left/right yaw rate +-0.1 rad/s, space stand/walk, "

@@ -93,6 +93,7 @@ def main(task: str, argv: list[str] | None = None) -> None:
   args = p.parse_args(argv)
 
   with common.user_errors():
+    common.check_paths({"--out": args.out, "--resume": args.resume})
     if args.resume:
       given = [name for name, value, default in (
           ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),

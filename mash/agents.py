@@ -64,8 +64,3 @@ def assemble_action(groups: Sequence[AgentGroup], actions: Mapping[str, jax.Arra
     a = actions[g.name].reshape(first.shape[:-2] + (idx.size,))
     flat = flat.at[..., idx].set(a)
   return flat
-
-
-def split_action(groups: Sequence[AgentGroup], flat: jax.Array) -> dict[str, jax.Array]:
-  """Inverse of :func:`assemble_action`: ``[..., A] -> {name: [..., n_agents, act_dim]}``."""
-  return {g.name: flat[..., np.asarray(g.action_index)] for g in groups}

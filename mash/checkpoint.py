@@ -9,6 +9,8 @@ skipped with a one-line warning on stderr: :func:`restore_latest` returns the ne
 restores, and raises :class:`CheckpointError` (one line) when steps exist but none restores. Nothing
 is ever deleted here. Only the newest ``max_to_keep`` steps are kept by :func:`make_manager`'s
 manager. Typed PRNG keys in the state are stored as their raw data and re-wrapped on restore.
+Without a trainer (no template state), :func:`restore_latest_flat` reads some top-level fields as
+saved, ``{key path: array}``, and :func:`unflatten` nests them: how :mod:`mash.policy` loads one.
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ import contextlib
 import logging
 import math
 import os
+import re
 import sys
-from typing import Any, Sequence, Iterator, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -161,6 +164,48 @@ def restore(manager: ocp.CheckpointManager, step: int, template_state: Any,
   return Restored(step=step, state=state, config=config_from_dict(restored['config']))
 
 
+def restore_flat(manager: ocp.CheckpointManager, step: int, fields: Sequence[str]) -> Restored:
+  """Restores the top-level ``fields`` of checkpoint ``step`` without a template (no trainer):
+  ``state`` is ``{key path: array}``, the on-disk layout of :func:`save` (see :func:`unflatten`),
+  as saved: with a leading seed axis for a multi-seed run. Arrays are uncommitted, on this process's
+  first device. KeyError when a field holds nothing in the checkpoint."""
+  target = ocp.args.StandardRestore(None, fallback_sharding=jax.sharding.SingleDeviceSharding(
+      jax.local_devices()[0]))
+  restored = manager.restore(step, args=ocp.args.Composite(state=target,
+                                                           config=ocp.args.JsonRestore()))
+  flat = {k: jnp.asarray(np.asarray(v)) for k, v in restored['state'].items()
+          if _in_fields(k, fields)}
+  for field in fields:
+    if not any(_in_fields(k, (field,)) for k in flat):
+      raise KeyError(f'the checkpoint has no .{field}')
+  return Restored(step=step, state=flat, config=config_from_dict(restored['config']))
+
+
+_KEY_PART = re.compile(r"\.([A-Za-z_]\w*)|\['((?:[^'\\]|\\.)*)'\]")
+
+
+def unflatten(flat: dict[str, Any]) -> dict[str, Any]:
+  """Nested dicts from :func:`_to_flat`'s ``{key path: leaf}`` without a template: dict keys and
+  dataclass fields both become dict entries (``.normalizer['legs'].mean`` ->
+  ``{'normalizer': {'legs': {'mean': leaf}}}``). ValueError for a path with other parts (sequence
+  indices), which the policy fields do not have."""
+  tree: dict[str, Any] = {}
+  for key, leaf in flat.items():
+    parts, end = [], 0
+    for match in _KEY_PART.finditer(key):
+      if match.start() != end:
+        break
+      parts.append(match.group(1) if match.group(1) is not None else match.group(2))
+      end = match.end()
+    if end != len(key) or not parts:
+      raise ValueError(f'checkpoint key {key!r} is not a path of dict keys and fields')
+    node = tree
+    for part in parts[:-1]:
+      node = node.setdefault(part, {})
+    node[parts[-1]] = leaf
+  return tree
+
+
 def _is_typed_key(x: Any) -> bool:
   return hasattr(x, 'dtype') and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
@@ -231,6 +276,24 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
   Raises:
     CheckpointError: checkpoint steps exist but none of them restores.
   """
+  return _restore_newest(directory, step,
+                         lambda manager, candidate: restore(manager, candidate, template_state,
+                                                            fields))
+
+
+def restore_latest_flat(directory: str | os.PathLike, fields: Sequence[str],
+                        step: int | None = None) -> Restored | None:
+  """:func:`restore_latest` without a template (no trainer): the newest step whose ``fields``
+  restore, as :func:`restore_flat` returns them; the same fallback, warnings and errors."""
+  return _restore_newest(directory, step,
+                         lambda manager, candidate: restore_flat(manager, candidate, fields))
+
+
+def _restore_newest(directory: str | os.PathLike, step: int | None,
+                    restore_step: Callable[[ocp.CheckpointManager, int], Restored]
+                    ) -> Restored | None:
+  """``restore_step`` on the newest step that restores (or on ``step`` alone); see
+  :func:`restore_latest`."""
   if not os.path.isdir(directory):
     return None
   with _quiet_absl():
@@ -245,8 +308,7 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
       first_error = None
       for i, candidate in enumerate(steps):
         try:
-          return restore(manager, candidate, template_state,
-                         fields)._replace(skipped=tuple(steps[:i]))
+          return restore_step(manager, candidate)._replace(skipped=tuple(steps[:i]))
         except Exception as e:  # noqa: BLE001 - whatever the cause, this step is unusable
           first_error = first_error or _one_line(e)
           if i + 1 < len(steps):  # when none restores, the CheckpointError alone says it all

@@ -11,7 +11,6 @@ belongs to the environment, not to this config.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from typing import Any, Mapping, NamedTuple
 
@@ -97,6 +96,48 @@ class TrainConfig:
 LEARNING_RATE_SCHEDULES = ('fixed', 'adaptive_kl', 'linear')
 # rsl_rl's bounds for the adaptive schedule.
 MIN_LEARNING_RATE, MAX_LEARNING_RATE = 1e-5, 1e-2
+# Counters on the device are int32 (the train state's iteration, each env slot's step count).
+MAX_INT32 = 2**31 - 1
+# Caps on sizes, far above any run's (the gpu preset: 4096 envs x 48 steps, layers of 512) and low
+# enough that a typo is refused here instead of exhausting memory when the trainer starts.
+SIZE_CAPS = {'num_iterations': MAX_INT32, 'unroll_length': 10_000, 'num_envs': 2**20,
+             'iterations_per_call': 10_000, 'num_epochs': 1000, 'num_minibatches': MAX_INT32}
+MAX_LAYER_SIZE = 8192
+
+
+def _text(x: Any) -> str:
+  """A bound as it reads best in a message: ints in full, floats short (``1e+06``, ``0.5``)."""
+  return str(x) if isinstance(x, int) else f'{x:g}'
+
+
+def check_number(name: str, value: Any, low: float, high: float, unit: str = '',
+                 open_low: bool = False) -> None:
+  """Checks that ``value`` lies in ``[low, high]`` (``(low, high]`` with ``open_low``); NaN never
+  does, and inf does not either, the bounds being finite.
+
+  Raises:
+    ValueError: ``'<name> must be in [low, high] <unit>, got <value>'``.
+  """
+  inside = low < value <= high if open_low else low <= value <= high
+  if not inside:
+    interval = f"{'(' if open_low else '['}{_text(low)}, {_text(high)}]"
+    raise ValueError(f"{name} must be in {interval}{' ' + unit if unit else ''}, got {value}")
+
+
+def check_range(name: str, value: Any, low: float, high: float, unit: str = '',
+                open_low: bool = False) -> None:
+  """Checks that ``value`` is a range ``(lo, hi)`` with ``low <= lo <= hi <= high`` (``low < lo``
+  with ``open_low``); NaN is never in it.
+
+  Raises:
+    ValueError: ``'<name> must be a range (lo, hi) with low <= lo <= hi <= high <unit>, got
+      <value>'``.
+  """
+  ok = len(value) == 2 and (low < value[0] if open_low else low <= value[0])
+  if not (ok and value[0] <= value[1] <= high):
+    rule = f"{_text(low)} {'<' if open_low else '<='} lo <= hi <= {_text(high)}"
+    raise ValueError(f"{name} must be a range (lo, hi) with {rule}{' ' + unit if unit else ''}, "
+                     f"got {value}")
 
 
 class Derived(NamedTuple):
@@ -130,47 +171,56 @@ def derived(config: TrainConfig, num_devices: int = 1) -> Derived:
     The derived sizes (global, i.e. summed over devices).
 
   Raises:
-    ValueError: a size is not positive, ``num_envs`` is not divisible by ``num_devices``, or the
-      per-device batch ``num_envs / num_devices * unroll_length`` is not divisible by
-      ``num_minibatches``.
+    ValueError: a size is not positive or above its cap (``SIZE_CAPS``, ``MAX_LAYER_SIZE``), a
+      number is outside its range (NaN and inf always are), ``num_envs`` is not divisible by
+      ``num_devices``, or the per-device batch ``num_envs / num_devices * unroll_length`` is not
+      divisible by ``num_minibatches``. One line naming the field, its value and what was expected.
   """
-  for name in ('num_iterations', 'unroll_length', 'num_envs', 'iterations_per_call', 'num_epochs',
-               'num_minibatches'):
-    if getattr(config, name) < 1:
-      raise ValueError(f'TrainConfig.{name} must be >= 1, got {getattr(config, name)}.')
+  for name, cap in SIZE_CAPS.items():
+    value = getattr(config, name)
+    if value < 1:
+      raise ValueError(f'TrainConfig.{name} must be >= 1, got {value}.')
+    if value > cap:
+      raise ValueError(f'TrainConfig.{name} must be at most {cap}, got {value}.')
   if config.learning_rate_schedule not in LEARNING_RATE_SCHEDULES:
     raise ValueError(f"TrainConfig.learning_rate_schedule '{config.learning_rate_schedule}' is "
                      f"unknown; expected one of {', '.join(LEARNING_RATE_SCHEDULES)}.")
   checks = (  # (field, ok, what is expected); `not (x > 0)` etc. also refuse NaN
       ('learning_rate', 0 < config.learning_rate < math.inf, 'a finite number > 0'),
-      ('desired_kl', 0 < config.desired_kl < math.inf, 'a finite number > 0'),
+      ('learning_rate', config.learning_rate <= 1, 'at most 1'),
+      ('desired_kl', 0 < config.desired_kl <= 10, 'in (0, 10]'),
       ('gamma', 0 < config.gamma <= 1, 'in (0, 1]'),
       ('gae_lambda', 0 <= config.gae_lambda <= 1, 'in [0, 1]'),
-      ('clip_epsilon', 0 < config.clip_epsilon < math.inf, 'a finite number > 0'),
-      ('value_clip', -math.inf < config.value_clip < math.inf, 'finite (<= 0: no value clip)'),
-      ('entropy_coef', 0 <= config.entropy_coef < math.inf, 'a finite number >= 0'),
-      ('value_loss_coef', 0 <= config.value_loss_coef < math.inf, 'a finite number >= 0'),
-      ('max_grad_norm', 0 < config.max_grad_norm < math.inf, 'a finite number > 0'),
+      ('clip_epsilon', 0 < config.clip_epsilon <= 10, 'in (0, 10]'),
+      ('value_clip', -1e6 <= config.value_clip <= 1e6, 'in [-1e6, 1e6] (<= 0: no value clip)'),
+      ('entropy_coef', 0 <= config.entropy_coef <= 1e3, 'in [0, 1000]'),
+      ('value_loss_coef', 0 <= config.value_loss_coef <= 1e3, 'in [0, 1000]'),
+      ('max_grad_norm', 0 < config.max_grad_norm <= 1e6, 'in (0, 1e6]'),
       ('init_log_std', -20 <= config.init_log_std <= 5, 'in [-20, 5] (a log standard deviation)'),
-      ('obs_clip', 0 < config.obs_clip < math.inf, 'a finite number > 0'),
+      ('obs_clip', 0 < config.obs_clip <= 1e6, 'in (0, 1e6]'),
+      ('seed', 0 <= config.seed <= MAX_INT32, f'in [0, {MAX_INT32}]'),
   )
   for name, ok, expected in checks:
     if not ok:
       raise ValueError(f'TrainConfig.{name} must be {expected}, got {getattr(config, name)}.')
   for name in ('actor_hidden', 'critic_hidden'):
     sizes = getattr(config, name)
-    if not sizes or any(int(h) != h or h < 1 for h in sizes):
-      raise ValueError(f'TrainConfig.{name} must be one or more layer sizes >= 1, got {sizes}.')
+    if not sizes or any(int(h) != h or not 1 <= h <= MAX_LAYER_SIZE for h in sizes):
+      raise ValueError(f'TrainConfig.{name} must be one or more layer sizes >= 1 and <= '
+                       f'{MAX_LAYER_SIZE}, got {sizes}.')
   if num_devices < 1 or config.num_envs % num_devices:
     raise ValueError(f'TrainConfig.num_envs={config.num_envs} must be divisible by the number of '
                      f'devices ({num_devices}).')
+  batch = config.num_envs * config.unroll_length
+  if batch > MAX_INT32:
+    raise ValueError(f'TrainConfig: num_envs * unroll_length = {batch} transitions per iteration '
+                     f'must be at most {MAX_INT32} (int32 indices).')
   local_batch = config.num_envs // num_devices * config.unroll_length
   if local_batch % config.num_minibatches:
     raise ValueError(
         f'TrainConfig: num_envs/devices * unroll_length = {config.num_envs // num_devices} * '
         f'{config.unroll_length} = {local_batch} must be divisible by num_minibatches='
         f'{config.num_minibatches}.')
-  batch = config.num_envs * config.unroll_length
   return Derived(
       batch_size=batch,
       minibatch_size=batch // config.num_minibatches,
@@ -198,13 +248,3 @@ def config_from_dict(d: Mapping[str, Any]) -> TrainConfig:
     raise ValueError(f'Unknown TrainConfig field(s) {unknown}; expected some of {sorted(fields)}.')
   kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
   return TrainConfig(**kwargs)
-
-
-def config_to_json(config: TrainConfig) -> str:
-  """The config as an indented JSON string."""
-  return json.dumps(config_to_dict(config), indent=2, sort_keys=True)
-
-
-def config_from_json(text: str) -> TrainConfig:
-  """Parses a config written by :func:`config_to_json`."""
-  return config_from_dict(json.loads(text))

@@ -27,6 +27,7 @@ from mash import agents
 from mash import randomize
 from mash import rewards
 from mash import robots
+from mash.config import check_number, check_range
 
 State = brax_base.State
 
@@ -92,6 +93,8 @@ class EnvConfig:
     fall_tilt: |roll| or |pitch| (rad) above which the episode ends as a fall.
     commands, randomization, reward_scales, reward_params: see their classes.
     auto_reset: reset finished episodes inside ``step``.
+
+  The sane range of every number is checked by :func:`check_config`.
   """
 
   task: str = "bipedal"
@@ -117,6 +120,26 @@ class EnvConfig:
   reward_scales: rewards.RewardScales = rewards.RewardScales()
   reward_params: rewards.RewardParams = rewards.RewardParams()
   auto_reset: bool = True
+
+
+# The sane bounds of EnvConfig's numbers: (field, lowest, highest, unit, must be above the lowest).
+# ctrl_dt >= 1 ms, with at most MAX_SUBSTEPS physics steps per control step and periods of at most
+# 1e5 s, keeps every step count of an episode far below int32's limit.
+ENV_BOUNDS = (
+    ("ctrl_dt", 1e-3, 1.0, "s", False),
+    ("episode_length", 1, 10_000_000, "control steps", False),
+    ("action_scale", 0.0, 10.0, "rad", True),
+    ("action_clip", 0.0, 1e3, "", True),
+    ("gait_cycle_s", 0.0, 10.0, "s", True),
+    ("swing_amplitude", 0.0, np.pi, "rad", False),
+    ("arm_swing_amplitude", 0.0, np.pi, "rad", False),
+    ("fall_height", 0.0, 5.0, "m", False),
+    ("fall_tilt", 0.0, np.pi, "rad", True),
+)
+MAX_ACTOR_HISTORY = 100
+MAX_SUBSTEPS = 1000
+MAX_COMMAND = 10.0  # m/s or rad/s
+MAX_RESAMPLE_S = 1e5
 
 
 def pd_torque(q_target: jax.Array, q: jax.Array, dq: jax.Array, kp: jax.Array, kd: jax.Array,
@@ -155,7 +178,9 @@ def _groups_for(spec: robots.RobotSpec, config: EnvConfig) -> tuple[tuple[str, t
 
 
 def check_config(config: EnvConfig, robot_given: bool = False) -> None:
-  """Checks the choices of an :class:`EnvConfig` without building anything (cheap).
+  """Checks an :class:`EnvConfig` without building anything (cheap): its choices, every number
+  against its sane range (``ENV_BOUNDS`` and each section's own check; NaN and inf never pass) and
+  that ``physics.sim_dt`` divides ``ctrl_dt`` into at most ``MAX_SUBSTEPS`` physics steps.
 
   Args:
     config: the config.
@@ -172,38 +197,41 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   if not robot_given and config.robot not in robots.ROBOTS:
     raise ValueError(f"robot '{config.robot}' is unknown; expected one of "
                      f"{', '.join(robots.ROBOTS)}")
+  for name, low, high, unit, open_low in ENV_BOUNDS:
+    check_number(name, getattr(config, name), low, high, unit, open_low)
+  if config.actor_history < 1:
+    raise ValueError(f"actor_history must be >= 1 (control steps), got {config.actor_history}")
+  check_number("actor_history", config.actor_history, 1, MAX_ACTOR_HISTORY, "control steps")
+  for check, section, part in ((robots.check_physics, "physics", config.physics),
+                               (check_commands, "commands", config.commands),
+                               (randomize.check_config, "randomization", config.randomization),
+                               (rewards.check_scales, "reward_scales", config.reward_scales),
+                               (rewards.check_params, "reward_params", config.reward_params)):
+    try:
+      check(part)
+    except ValueError as e:
+      raise ValueError(f"{section}.{e}") from None
   n_sub = config.ctrl_dt / config.physics.sim_dt
   if abs(n_sub - round(n_sub)) > 1e-9 or round(n_sub) < 1:
     raise ValueError(f"ctrl_dt {config.ctrl_dt} must be a whole multiple of sim_dt "
                      f"{config.physics.sim_dt}")
-  if config.episode_length < 1:
-    raise ValueError(f"episode_length must be >= 1, got {config.episode_length}")
-  if config.actor_history < 1:
-    raise ValueError(f"actor_history must be >= 1 (control steps), got {config.actor_history}")
-  params = config.reward_params
-  for field in ("ramped_terms", "boosted_terms"):
-    unknown = [t for t in getattr(params, field) if t not in rewards.TERMS]
-    if unknown:
-      raise ValueError(f"reward_params.{field}: '{unknown[0]}' is not a reward term; expected "
-                       f"names from {', '.join(rewards.TERMS)}")
-  for field in ("penalty_ramp_steps", "tracking_boost_steps"):
-    if getattr(params, field) < 0:
-      raise ValueError(f"reward_params.{field} must be >= 0 (0 = no curriculum), got "
-                       f"{getattr(params, field)}")
-  if not params.tracking_boost >= 1.0:  # also NaN
-    raise ValueError("reward_params.tracking_boost must be >= 1 (1 = no curriculum), got "
-                     f"{params.tracking_boost}")
-  dr = config.randomization
-  if dr.friction_ramp_steps < 0:
-    raise ValueError("randomization.friction_ramp_steps must be >= 0 (0 = no curriculum), got "
-                     f"{dr.friction_ramp_steps}")
-  if not 0.0 <= dr.torque_noise < 1.0:  # also NaN
-    raise ValueError("randomization.torque_noise must be a fraction of the torque limit in "
-                     f"[0, 1), got {dr.torque_noise}")
-  for name in ("friction", "friction_initial"):
-    r = getattr(dr, name)
-    if r is not None and not (len(r) == 2 and 0.0 < r[0] <= r[1]):
-      raise ValueError(f"randomization.{name} must be a range (lo, hi) with 0 < lo <= hi, got {r}")
+  if round(n_sub) > MAX_SUBSTEPS:
+    raise ValueError(f"ctrl_dt / physics.sim_dt = {config.ctrl_dt} / {config.physics.sim_dt} = "
+                     f"{round(n_sub)} physics steps per control step must be at most "
+                     f"{MAX_SUBSTEPS}")
+
+
+def check_commands(commands: CommandConfig) -> None:
+  """Checks a :class:`CommandConfig`: each velocity range within +-10 (m/s, rad/s) with lo <= hi,
+  a probability in [0, 1], a resampling period in (0, 1e5] s.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  for name, unit in (("vx", "m/s"), ("vy", "m/s"), ("yaw_rate", "rad/s")):
+    check_range(name, getattr(commands, name), -MAX_COMMAND, MAX_COMMAND, unit)
+  check_number("standing_prob", commands.standing_prob, 0.0, 1.0)
+  check_number("resample_s", commands.resample_s, 0.0, MAX_RESAMPLE_S, "s", open_low=True)
 
 
 def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-3) -> np.ndarray:

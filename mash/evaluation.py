@@ -8,7 +8,7 @@ anyone can recompute the metrics from ``trajectories.npz``.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +16,9 @@ import numpy as np
 
 from mash import env as env_lib
 from mash import metrics as metrics_lib
+from mash import randomize
 from mash import robots
+from mash.config import MAX_INT32, check_number, check_range
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +36,8 @@ class EvalConfig:
     friction: floor-friction range ``(lo, hi)`` drawn from instead of the run's own; None keeps
       the run's. E.g. (0.1, 1.2), the paper's, for a run trained on a narrower range.
     seed: rollout seed.
+
+  The sane range of every number is checked by :func:`check_config`.
   """
 
   command_vx: float = 0.4
@@ -44,6 +48,35 @@ class EvalConfig:
   push_interval_s: float | None = None
   friction: tuple[float, float] | None = None
   seed: int = 1234
+
+
+MAX_EPISODES = 100_000
+MAX_EPISODE_S = 3600.0
+
+
+def check_config(cfg: EvalConfig, labels: Mapping[str, str] | None = None) -> None:
+  """Checks an :class:`EvalConfig` without building anything: a forward command within the
+  commands' bounds (+-10 m/s), 1 to 100 000 episodes of (0, 3600] s, a push interval in [0, 1e5]
+  s, a friction range with 0 < lo <= hi <= 10 and a seed in [0, 2**31 - 1]. NaN and inf never pass.
+
+  Args:
+    cfg: the settings.
+    labels: how to name a field in the message (a command line passes its flags, e.g.
+      ``{'num_episodes': '--episodes'}``); a field not in it is named as it is.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  name = lambda field: (labels or {}).get(field, field)
+  check_number(name("command_vx"), cfg.command_vx, -env_lib.MAX_COMMAND, env_lib.MAX_COMMAND,
+               "m/s")
+  check_number(name("num_episodes"), cfg.num_episodes, 1, MAX_EPISODES)
+  check_number(name("episode_s"), cfg.episode_s, 0.0, MAX_EPISODE_S, "s", open_low=True)
+  if cfg.push_interval_s is not None:
+    check_number(name("push_interval_s"), cfg.push_interval_s, 0.0, randomize.MAX_INTERVAL_S, "s")
+  if cfg.friction is not None:
+    check_range(name("friction"), cfg.friction, 0.0, 10.0, open_low=True)
+  check_number(name("seed"), cfg.seed, 0, MAX_INT32)
 
 
 def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.EnvConfig:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import numbers
 import typing
 from typing import Any, Mapping, Sequence
 
@@ -17,6 +18,7 @@ from mash import config as train_config
 from mash import env as env_lib
 
 ALGOS = ("mash", "ppo")
+MAX_SEEDS = 1024  # seeds of one run train side by side (vmapped) on one device
 PRESETS = ("smoke", "cpu", "gpu")
 # Ablation switches (paper-style studies): each maps to config changes on top of the algorithm.
 ABLATIONS = ("none", "no_sharing", "local_critic", "single_value_head", "no_temporal_director",
@@ -166,6 +168,9 @@ def _check_choices(task: str, algo: str, preset: str, ablation: str, seeds: int)
       raise ConfigError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
   if seeds < 1:
     raise ConfigError(f"seeds must be >= 1, got {seeds}")
+  if seeds > MAX_SEEDS:
+    raise ConfigError(f"seeds must be at most {MAX_SEEDS} (seeds train side by side on one "
+                      f"device), got {seeds}")
   if ablation != "none" and algo != "mash":
     raise ConfigError(f"ablation '{ablation}' applies to --algo mash, not '{algo}'")
 
@@ -177,6 +182,7 @@ def check(cfg: ExperimentConfig) -> None:
   Raises:
     ConfigError: names the bad field and what was expected.
   """
+  _check_kinds(cfg)
   _check_choices(cfg.task, cfg.algo, cfg.preset, cfg.ablation, cfg.seeds)
   for name in ("checkpoint_every", "keep_checkpoints"):
     if getattr(cfg, name) < 1:
@@ -189,6 +195,55 @@ def check(cfg: ExperimentConfig) -> None:
     train_config.derived(cfg.train)
   except ValueError as e:
     raise ConfigError(str(e)) from None
+
+
+_KINDS = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
+_KINDS_PLURAL = {bool: "true/false values", int: "whole numbers", float: "numbers", str: "names"}
+
+
+def _kind(hint: Any) -> str:
+  """What a field of type ``hint`` holds, in words."""
+  args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+  if typing.get_origin(hint) is tuple:
+    return f"a list of {_KINDS_PLURAL.get(args[0], 'values')}"
+  if type(None) in args:
+    return " or ".join(_kind(a) for a in args if a is not type(None)) + " or none"
+  return _KINDS.get(hint, getattr(hint, "__name__", str(hint)))
+
+
+def _is_kind(value: Any, hint: Any) -> bool:
+  """Whether ``value`` is of the field type ``hint`` (an int passes for a float)."""
+  args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+  if typing.get_origin(hint) is tuple:
+    return isinstance(value, tuple) and all(_is_kind(v, args[0]) for v in value)
+  if type(None) in args:
+    return value is None or any(_is_kind(value, a) for a in args if a is not type(None))
+  if hint is bool:
+    return isinstance(value, bool)
+  if hint is int:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+  if hint is float:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+  return isinstance(value, hint)
+
+
+def _check_kinds(obj: Any, prefix: str = "") -> None:
+  """Checks that every field of a config, sections included, holds its declared kind of value
+  (a config.json written by hand, or a config built in code, may hold anything), so that the
+  range checks compare numbers with numbers.
+
+  Raises:
+    ConfigError: names the field, its value and the kind expected.
+  """
+  hints = typing.get_type_hints(type(obj))
+  for f in dataclasses.fields(obj):
+    value, hint, path = getattr(obj, f.name), hints[f.name], prefix + f.name
+    if dataclasses.is_dataclass(hint):
+      if not isinstance(value, hint):
+        raise ConfigError(f"{path} must be a {hint.__name__} section, got {value!r}")
+      _check_kinds(value, path + ".")
+    elif not _is_kind(value, hint):
+      raise ConfigError(f"{path} must be {_kind(hint)}, got {value!r}")
 
 
 def _coerce(text: str, like: Any, path: str) -> Any:
@@ -210,8 +265,8 @@ def _coerce(text: str, like: Any, path: str) -> Any:
       return tuple(kind(t) for t in items)
     return text
   except ValueError:
-    raise ConfigError(f"override '{path}={text}': expected a {type(like).__name__} "
-                      f"like {like!r}") from None
+    what = {**_KINDS, tuple: "comma-separated values"}.get(type(like), "text")
+    raise ConfigError(f"override '{path}={text}': expected {what} like {like!r}") from None
 
 
 def _coerce_field(text: str, obj: Any, name: str, path: str) -> Any:

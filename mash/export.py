@@ -61,7 +61,7 @@ class PolicyParts(NamedTuple):
   Attributes:
     env: the run's ``MashEnv`` (observation layout, joint tables, config).
     networks: its ``Networks`` (the JAX reference applies them).
-    params: that seed's full params ``{'actors': ..., 'critic': ...}``.
+    params: that seed's params ``{'actors': ...}`` (a ``'critic'`` entry beside it is unused).
     normalizer: that seed's ``{stream: RunningStats}``, or None (no normalization).
     obs_clip: clip of normalized observations.
     share_actor: one actor per group (else one per agent: the no-sharing ablation).
@@ -77,20 +77,20 @@ class PolicyParts(NamedTuple):
   meta: Mapping[str, Any]
 
 
-def policy_parts(run, seed: int = 0) -> PolicyParts:
-  """One seed's policy of a :class:`mash.runs.LoadedRun` (or anything with its fields)."""
-  from mash import runs
-  seeds = int(run.config.seeds)
-  if not 0 <= seed < seeds:
-    raise ExportError(f"seed {seed} is out of range: the run has {seeds} seed(s) (0..{seeds - 1})")
-  params = jax.device_get(runs.seed_slice(run.params, seed, seeds))
+def policy_parts(policy, env=None) -> PolicyParts:
+  """The parts of a :class:`mash.policy.Policy` (``env``: a ``MashEnv`` of its config, built
+  when None)."""
+  from mash import env as env_lib
+  from mash import policy as policy_lib
+  cfg = policy.config
+  env = env_lib.MashEnv(cfg.env) if env is None else env
   normalizer = None
-  if run.normalizer is not None and run.config.train.normalize_observations:
-    normalizer = jax.device_get(runs.seed_slice(run.normalizer, seed, seeds))
-  meta = {"task": run.config.task, "algo": run.config.algo, "ablation": run.config.ablation,
-          "checkpoint_iteration": int(run.iteration), "seed": seed}
-  return PolicyParts(run.trainer.env, run.trainer.networks, params, normalizer,
-                     float(run.config.train.obs_clip), bool(run.config.train.share_actor), meta)
+  if policy.normalizer is not None and cfg.train.normalize_observations:
+    normalizer = jax.device_get(policy.normalizer)
+  meta = {"task": cfg.task, "algo": cfg.algo, "ablation": cfg.ablation,
+          "checkpoint_iteration": int(policy.iteration), "seed": int(policy.seed)}
+  return PolicyParts(env, policy_lib.actor_networks(policy, env), jax.device_get(policy.params),
+                     normalizer, float(cfg.train.obs_clip), bool(cfg.train.share_actor), meta)
 
 
 # ------------------------------------------------------------------------------- layout tables
@@ -341,10 +341,11 @@ def build_model(parts: PolicyParts) -> onnx.ModelProto:
   return model
 
 
-def export_policy(run, path: str | os.PathLike, seed: int = 0) -> Path:
-  """Writes the ONNX policy of one seed of ``run`` (a :class:`mash.runs.LoadedRun`) to ``path``."""
+def export_policy(policy, path: str | os.PathLike) -> Path:
+  """Writes the ONNX graph of ``policy`` (a :class:`mash.policy.Policy`, or its
+  :class:`PolicyParts`) to ``path``."""
   path = Path(path)
-  model = build_model(policy_parts(run, seed))
+  model = build_model(policy if isinstance(policy, PolicyParts) else policy_parts(policy))
   path.parent.mkdir(parents=True, exist_ok=True)
   onnx.save(model, str(path))
   return path
@@ -403,22 +404,6 @@ def reference_fn(parts: PolicyParts):
                                                                for k in INPUTS)))
 
 
-def jax_reference(run, inputs: Mapping[str, np.ndarray], seed: int = 0
-                  ) -> tuple[np.ndarray, np.ndarray]:
-  """What the exported graph must compute, in JAX.
-
-  Args:
-    run: a :class:`mash.runs.LoadedRun`, or :class:`PolicyParts`.
-    inputs: ``{name: float32 [N, ...]}`` keyed by :data:`INPUTS`.
-    seed: which seed of the run.
-
-  Returns:
-    ``(action [N, A], q_target [N, A])``.
-  """
-  parts = run if isinstance(run, PolicyParts) else policy_parts(run, seed)
-  return reference_fn(parts)(inputs)
-
-
 def onnx_session(path: str | os.PathLike):
   """An onnxruntime CPU session of an exported policy (one thread: tiny MLP, low latency)."""
   import onnxruntime as ort
@@ -428,9 +413,9 @@ def onnx_session(path: str | os.PathLike):
   return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
-def verify(path: str | os.PathLike, run, n: int = 256, seed: int = 0,
-           input_seed: int = 0) -> dict[str, float]:
-  """Runs the ONNX file and the JAX reference on ``n`` random observations.
+def verify(path: str | os.PathLike, policy, n: int = 256, input_seed: int = 0) -> dict[str, float]:
+  """Runs the ONNX file and the JAX reference of ``policy`` (a :class:`mash.policy.Policy`, or
+  its :class:`PolicyParts`) on ``n`` random observations.
 
   On an accelerator the reference runs at full float32 matmul precision: there JAX's default for
   float32 matmuls is lower (TF32 on NVIDIA: measured 6e-4 off on an H200, against 6e-7 at
@@ -440,7 +425,7 @@ def verify(path: str | os.PathLike, run, n: int = 256, seed: int = 0,
   Returns:
     ``{'action': max |diff|, 'q_target': max |diff|, 'n': n}``.
   """
-  parts = run if isinstance(run, PolicyParts) else policy_parts(run, seed)
+  parts = policy if isinstance(policy, PolicyParts) else policy_parts(policy)
   inputs = random_inputs(parts.env, n, input_seed)
   precision = (contextlib.nullcontext() if jax.default_backend() == "cpu"
                else jax.default_matmul_precision("highest"))

@@ -16,6 +16,8 @@ import jax.numpy as jnp
 from flax import struct
 from mujoco import mjx
 
+from mash.config import MAX_INT32, check_number, check_range
+
 
 @dataclasses.dataclass(frozen=True)
 class DomainRandConfig:
@@ -51,6 +53,9 @@ class DomainRandConfig:
       ``RewardParams.penalty_ramp_steps``). None: no curriculum.
     friction_ramp_steps: length of that curriculum (control steps); 0: ``friction`` throughout.
       Evaluation always draws from ``friction``, the range training ends on.
+
+
+  The sane range of every number is checked by :func:`check_config`.
   """
 
   enabled: bool = True
@@ -70,6 +75,48 @@ class DomainRandConfig:
   torque_noise: float = 0.02
   friction_initial: tuple[float, float] | None = None
   friction_ramp_steps: int = 0
+
+
+# (field, lowest lo, highest hi, unit, lo must be above the lowest): the sane bounds of each
+# range; ours, each far outside the paper's ranges, so a value beyond one is a typo.
+RANGE_BOUNDS = (
+    ("friction", 0.0, 10.0, "", True),
+    ("mass_scale", 0.0, 10.0, "", True),
+    ("com_offset", -1.0, 1.0, "m", False),
+    ("motor_delay_ms", 0.0, 1000.0, "ms", False),
+    ("push_force", -1e4, 1e4, "N", False),
+    ("push_torque", -1e3, 1e3, "N m", False),
+    ("gravity", 0.0, 100.0, "m/s^2", False),
+    ("joint_damping", 0.0, 100.0, "N m s/rad", False),
+    ("joint_friction", 0.0, 100.0, "N m", False),
+    ("armature", 0.0, 10.0, "kg m^2", False),
+    ("kp_scale", 0.0, 10.0, "", True),
+    ("kd_scale", 0.0, 10.0, "", True),
+)
+MAX_INTERVAL_S = 1e5  # s, about a day: a longer hold is a typo (and its step count stays int32)
+
+
+def check_config(config: DomainRandConfig) -> None:
+  """Checks every range and number of a :class:`DomainRandConfig` without building anything:
+  each range within ``RANGE_BOUNDS`` with lo <= hi, the push interval in [0, 1e5] s, the torque
+  noise a fraction in [0, 1), the curriculum's start range as ``friction``'s and its length in
+  [0, 2**31 - 1] steps. NaN and inf are never in range.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  for name, low, high, unit, open_low in RANGE_BOUNDS:
+    check_range(name, getattr(config, name), low, high, unit, open_low)
+  if config.friction_initial is not None:
+    check_range("friction_initial", config.friction_initial, 0.0, 10.0, open_low=True)
+  check_number("push_interval_s", config.push_interval_s, 0.0, MAX_INTERVAL_S, "s")
+  if not 0.0 <= config.torque_noise < 1.0:  # also NaN
+    raise ValueError("torque_noise must be a fraction of the torque limit in [0, 1), got "
+                     f"{config.torque_noise}")
+  if config.friction_ramp_steps < 0:
+    raise ValueError("friction_ramp_steps must be >= 0 (0 = no curriculum), got "
+                     f"{config.friction_ramp_steps}")
+  check_number("friction_ramp_steps", config.friction_ramp_steps, 0, MAX_INT32, "steps")
 
 
 @struct.dataclass

@@ -14,10 +14,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from mash.config import MAX_INT32, check_number
+
 
 @dataclasses.dataclass(frozen=True)
 class RewardScales:
-  """Paper scales. A zero removes the term from the traced program."""
+  """Paper scales. A zero removes the term from the traced program; :func:`check_scales` bounds
+  them."""
 
   joint_pos: float = 3.5
   tracking_lin_vel: float = 1.5
@@ -68,6 +71,9 @@ class RewardParams:
       exploring and the reward after the curriculum is the paper's. 1 (default): off.
     tracking_boost_steps: length of that curriculum in control steps per env slot.
     boosted_terms: the terms it multiplies. Default: the two velocity-tracking terms.
+
+
+  The sane range of every number is checked by :func:`check_params`.
   """
 
   tracking_sigma: float = 0.25
@@ -230,6 +236,55 @@ def torque_rate(x: RewardInputs, p: RewardParams) -> jax.Array:
 
 
 TERMS = {f.name: globals()[f.name] for f in dataclasses.fields(RewardScales)}
+
+# A scale this large (about 300 times the paper's largest, 3.5) is a typo, not a weighting.
+MAX_ABS_SCALE = 1e3
+# (field, lowest, highest, unit, must be above the lowest): the sane range of each constant.
+PARAM_BOUNDS = (
+    ("tracking_sigma", 0.0, 100.0, "m^2/s^2", True),
+    ("yaw_sigma", 0.0, 100.0, "rad^2/s^2", True),
+    ("air_time_alpha", 0.0, 1e3, "1/m", False),
+    ("feet_height_target", 0.0, 1.0, "m", False),
+    ("feet_height_tolerance", 0.0, 1.0, "m", True),
+    ("orientation_k_euler", 0.0, 1e4, "1/rad", False),
+    ("orientation_k_gravity", 0.0, 1e4, "", False),
+    ("base_height_k", 0.0, 1e4, "1/m", False),
+    ("collision_force", 0.0, 1e5, "N", False),
+    ("tracking_boost", 1.0, 100.0, "(1 = no curriculum)", False),
+)
+
+
+def check_scales(scales: RewardScales) -> None:
+  """Checks that every scale is a number in [-1000, 1000] (NaN and inf are not).
+
+  Raises:
+    ValueError: one line naming the term, its value and what was expected.
+  """
+  for name in TERMS:
+    check_number(name, getattr(scales, name), -MAX_ABS_SCALE, MAX_ABS_SCALE)
+
+
+def check_params(params: RewardParams) -> None:
+  """Checks the constants of the terms (``PARAM_BOUNDS``), the curricula's lengths (whole steps
+  in [0, 2**31 - 1]) and that the curricula name reward terms.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  for field in ("ramped_terms", "boosted_terms"):
+    unknown = [t for t in getattr(params, field) if t not in TERMS]
+    if unknown:
+      raise ValueError(f"{field}: '{unknown[0]}' is not a reward term; expected names from "
+                       f"{', '.join(TERMS)}")
+  for field in ("penalty_ramp_steps", "tracking_boost_steps"):
+    if getattr(params, field) < 0:
+      raise ValueError(f"{field} must be >= 0 (0 = no curriculum), got {getattr(params, field)}")
+    check_number(field, getattr(params, field), 0, MAX_INT32, "steps")
+  if not params.tracking_boost >= 1.0:  # also NaN
+    raise ValueError("tracking_boost must be >= 1 (1 = no curriculum), got "
+                     f"{params.tracking_boost}")
+  for name, low, high, unit, open_low in PARAM_BOUNDS:
+    check_number(name, getattr(params, name), low, high, unit, open_low)
 
 
 def penalty_ramp(env_steps: jax.Array | None, params: RewardParams) -> jax.Array:

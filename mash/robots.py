@@ -15,6 +15,8 @@ from typing import Mapping
 import mujoco
 import numpy as np
 
+from mash.config import check_number
+
 
 class SpecError(ValueError):
   """A robot spec that does not match its model (one line, names the culprit)."""
@@ -185,12 +187,34 @@ class PhysicsConfig:
     iterations: Newton solver iterations.
     ls_iterations: line-search iterations.
     integrator: 'euler' (MJX's fastest; `eulerdamp` off since joint damping is tiny).
+
+
+  The sane range of every number is checked by :func:`check_physics`.
   """
 
   sim_dt: float = 0.005
   iterations: int = 1
   ls_iterations: int = 4
   integrator: str = "euler"
+
+
+INTEGRATORS = ("euler", "implicitfast")
+MAX_SOLVER_ITERATIONS = 1000
+
+
+def check_physics(physics: PhysicsConfig) -> None:
+  """Checks the solver settings without building anything: a physics step in (0, 0.1] s, solver
+  and line-search iterations in [1, 1000], a known integrator.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  check_number("sim_dt", physics.sim_dt, 0.0, 0.1, "s", open_low=True)
+  for name in ("iterations", "ls_iterations"):
+    check_number(name, getattr(physics, name), 1, MAX_SOLVER_ITERATIONS)
+  if physics.integrator not in INTEGRATORS:
+    raise ValueError(f"integrator '{physics.integrator}' is unknown; expected one of "
+                     f"{', '.join(INTEGRATORS)}")
 
 
 def mjcf_path(spec: RobotSpec) -> str:

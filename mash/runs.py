@@ -9,6 +9,7 @@ signal aborts at once; Orbax's atomic step directories still leave the last comp
 loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
 checkpoint step that does not restore is skipped with a warning (:func:`mash.checkpoint.restore_latest`);
 on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted.
+Evaluation, export and sim-to-sim load a run's policy without this module: :mod:`mash.policy`.
 
 Several devices (``jax.device_count() > 1``: one process with several GPUs, or several processes
 joined by :func:`mash.distributed.initialize`) train one seed with its env batch split over a mesh of
@@ -30,7 +31,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any, Iterator, NamedTuple
+from typing import Any, Iterator
 
 import jax
 import numpy as np
@@ -39,12 +40,10 @@ from mash import checkpoint
 from mash import distributed
 from mash import experiment
 from mash import train as train_lib
+# Shared with deployment code, which loads policies without this module (mash.policy).
+from mash.policy import RunError, read_progress  # noqa: F401
 
 BASE_COLUMNS = ("iteration", "env_steps", "wall_s", "episode_reward", "episode_length")
-
-
-class RunError(ValueError):
-  """A run directory that cannot be used as asked (one line, names the directory)."""
 
 
 def is_run(path: Path) -> bool:
@@ -129,24 +128,6 @@ def state_shapes(trainer, cfg: experiment.ExperimentConfig):
   return jax.eval_shape(trainer.init, jax.random.PRNGKey(cfg.train.seed))
 
 
-class LoadedRun(NamedTuple):
-  """A trained run ready to act.
-
-  Attributes:
-    config: the run's experiment config.
-    trainer: its trainer (networks, env).
-    params: parameters of every seed (leading seed axis when ``config.seeds > 1``).
-    normalizer: observation statistics (same layout), or None when not normalizing.
-    iteration: the checkpoint's training iteration.
-  """
-
-  config: experiment.ExperimentConfig
-  trainer: Any
-  params: Any
-  normalizer: Any
-  iteration: int
-
-
 def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentConfig,
                 fields: tuple[str, ...] | None = None,
                 iteration: int | None = None) -> checkpoint.Restored:
@@ -162,24 +143,6 @@ def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentC
     raise RunError(f"'{run_dir}' has no complete checkpoint (it was stopped before its first "
                    "checkpoint was saved)")
   return restored
-
-
-def load_run(run_dir: str | os.PathLike, iteration: int | None = None) -> LoadedRun:
-  """Loads the latest checkpoint of a run that restores (or the one saved at ``iteration``);
-  RunError when there is none."""
-  cfg = load_config(run_dir)
-  trainer = build_trainer(cfg)
-  # A policy needs only params and normalizer: the env state's layout may have changed since.
-  restored = restore_run(run_dir, trainer, cfg, fields=checkpoint.POLICY_FIELDS,
-                         iteration=iteration)
-  state = restored.state
-  norm = state.normalizer if cfg.train.normalize_observations else None
-  return LoadedRun(cfg, trainer, state.params, norm, int(restored.step))
-
-
-def seed_slice(tree: Any, seed: int, seeds: int) -> Any:
-  """One seed's part of a (possibly seed-batched) pytree."""
-  return tree if seeds == 1 else jax.tree.map(lambda x: x[seed], tree)
 
 
 @contextlib.contextmanager
@@ -256,16 +219,6 @@ class _CsvLog:
       if new:
         w.writeheader()
       w.writerows(rows)
-
-
-def read_progress(run_dir: str | os.PathLike, per_seed: bool = False) -> dict[str, np.ndarray]:
-  """Columns of ``progress.csv`` (or ``progress_seeds.csv``) as float arrays."""
-  name = "progress_seeds.csv" if per_seed else "progress.csv"
-  with (Path(run_dir) / name).open() as f:
-    rows = list(csv.DictReader(f))
-  if not rows:
-    return {}
-  return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
 
 
 def plot_reward_curve(run_dir: Path) -> None:

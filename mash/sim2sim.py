@@ -28,6 +28,7 @@ import numpy as np
 
 from mash import export
 from mash import robots
+from mash.config import MAX_INT32, check_number
 
 REPORT_KEYS = ("S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed",
                "command_vx")
@@ -56,6 +57,8 @@ class Sim2SimConfig:
     integrator: 'implicitfast' (or 'euler').
     full_collision: the robot's own collision geometry collides with the floor too.
     seed: seed of the initial phases.
+
+  The sane range of every number is checked by :func:`check_config`.
   """
 
   command_vx: float = 0.4
@@ -67,6 +70,38 @@ class Sim2SimConfig:
   integrator: str = "implicitfast"
   full_collision: bool = True
   seed: int = 0
+
+
+MAX_EPISODES = 10_000
+MAX_EPISODE_S = 3600.0
+MIN_SIM_DT = 1e-5  # 100 kHz; a smaller step makes a control period take forever
+
+
+def check_config(cfg: Sim2SimConfig, labels: Mapping[str, str] | None = None) -> None:
+  """Checks a :class:`Sim2SimConfig` without building anything: a forward command within +-10
+  m/s, 1 to 10 000 episodes of (0, 3600] s, a physics step in [1e-5, 0.1] s, solver settings as
+  :func:`mash.robots.check_physics` wants them and a seed in [0, 2**31 - 1]. NaN and inf never
+  pass. That ``sim_dt`` divides the policy's control period is checked where the policy is read.
+
+  Args:
+    cfg: the settings.
+    labels: how to name a field in the message (a command line passes its flags, e.g.
+      ``{'sim_dt': '--sim-dt'}``); a field not in it is named as it is.
+
+  Raises:
+    ValueError: one line naming the field, its value and what was expected.
+  """
+  name = lambda field: (labels or {}).get(field, field)
+  check_number(name("command_vx"), cfg.command_vx, -10.0, 10.0, "m/s")
+  check_number(name("num_episodes"), cfg.num_episodes, 1, MAX_EPISODES)
+  check_number(name("episode_s"), cfg.episode_s, 0.0, MAX_EPISODE_S, "s", open_low=True)
+  check_number(name("sim_dt"), cfg.sim_dt, MIN_SIM_DT, 0.1, "s")
+  check_number(name("seed"), cfg.seed, 0, MAX_INT32)
+  try:
+    robots.check_physics(physics(cfg))
+  except ValueError as e:
+    field, rest = str(e).split(" ", 1)
+    raise ValueError(f"{name(field)} {rest}") from None
 
 
 def physics(cfg: Sim2SimConfig) -> robots.PhysicsConfig:

@@ -264,10 +264,10 @@ def test_evaluate_rejects_a_bad_friction_range(tmp_path):
 def test_evaluate_iteration_picks_that_checkpoint_or_names_the_saved_ones(smoke_run):
   """--iteration N restores the checkpoint of iteration N; one not saved is one error line that
   lists the saved iterations, and nothing is written."""
-  from mash import runs
-  assert runs.load_run(smoke_run, iteration=10).iteration == 10
-  with pytest.raises(runs.RunError, match=r"no checkpoint of step 7 .*steps 10\)"):
-    runs.load_run(smoke_run, iteration=7)
+  from mash import policy
+  assert policy.load(smoke_run, iteration=10).iteration == 10
+  with pytest.raises(policy.RunError, match=r"no checkpoint of step 7 .*steps 10\)"):
+    policy.load(smoke_run, iteration=7)
   out = _cli("experiments.evaluate", "--run", str(smoke_run), "--iteration", "7")
   lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
   assert out.returncode == 2 and len(lines) == 1 and "step 7" in lines[0], out.stderr

@@ -10,7 +10,6 @@ some variances under the floor.
 from __future__ import annotations
 
 import math
-import types
 
 import jax
 import jax.numpy as jnp
@@ -20,14 +19,16 @@ import pytest
 
 from mash import env as env_lib
 from mash import experiment, export, networks, normalization, runs
+from mash import policy as policy_lib
 from mash.config import TrainConfig
 
 TOL = 1e-5
 
 
 def random_run(task: str, partition: str = "mash", share_actor: bool = True, seed: int = 0,
-               **env_overrides) -> runs.LoadedRun:
-  """A LoadedRun with random actor weights and normalizer on a real (uncompiled) MashEnv."""
+               **env_overrides) -> export.PolicyParts:
+  """The parts of a policy with random actor weights and normalizer on a real (uncompiled)
+  MashEnv."""
   env_cfg = env_lib.EnvConfig(task=task, partition=partition, **env_overrides)
   env = env_lib.MashEnv(env_cfg)
   train_cfg = TrainConfig(actor_hidden=(32, 16), critic_hidden=(8,), share_actor=share_actor)
@@ -50,7 +51,8 @@ def random_run(task: str, partition: str = "mash", share_actor: bool = True, see
         m2=jnp.asarray(50.0 * var, jnp.float32))
   algo = "ppo" if partition == "ppo" else "mash"
   cfg = experiment.ExperimentConfig(task=task, algo=algo, env=env_cfg, train=train_cfg)
-  return runs.LoadedRun(cfg, types.SimpleNamespace(env=env, networks=nets), params, normalizer, 7)
+  policy = policy_lib.Policy(cfg, {"actors": params["actors"]}, normalizer, 7, 0, "random")
+  return export.policy_parts(policy, env)
 
 
 CASES = {
@@ -71,9 +73,9 @@ def test_onnx_matches_jax(case, tmp_path):
   diff = export.verify(path, run, n=256)
   assert diff["action"] <= TOL and diff["q_target"] <= TOL, diff
   # The check is not vacuous: the actions are of order one.
-  inputs = export.random_inputs(run.trainer.env, 8, seed=1)
+  inputs = export.random_inputs(run.env, 8, seed=1)
   action, q_target = export.onnx_session(path).run(None, inputs)
-  assert action.shape == q_target.shape == (8, run.trainer.env.action_size)
+  assert action.shape == q_target.shape == (8, run.env.action_size)
   assert np.abs(action).max() > 0.1
 
 
@@ -100,7 +102,7 @@ def test_observation_layout_by_hand():
 
 def test_q_target_and_metadata(tmp_path):
   run = random_run("bipedal")
-  env = run.trainer.env
+  env = run.env
   path = export.export_policy(run, tmp_path / "policy.onnx")
   model = onnx.load(str(path))
   assert [i.name for i in model.graph.input] == list(export.INPUTS)
@@ -122,10 +124,14 @@ def test_q_target_and_metadata(tmp_path):
   np.testing.assert_allclose(q_target, default + 0.25 * np.clip(action, -10, 10), atol=1e-6)
 
 
-def test_seed_out_of_range():
-  run = random_run("bipedal")
-  with pytest.raises(export.ExportError, match="seed 3 is out of range"):
-    export.policy_parts(run, seed=3)
+def test_seed_out_of_range(smoke_run, tmp_path, capsys):
+  from experiments import export as export_cli
+  with pytest.raises(SystemExit) as e:
+    export_cli.main(["--run", str(smoke_run), "--seed", "3", "--out", str(tmp_path / "x.onnx")])
+  assert e.value.code == 2
+  err = capsys.readouterr().err.strip()
+  assert err.startswith("error: seed 3 is out of range: the run has 1 seed") and "\n" not in err
+  assert not (tmp_path / "x.onnx").exists()
 
 
 def test_export_cli_on_smoke_run(smoke_run, tmp_path, capsys):

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import checkpoint, losses, robots, runs
+from mash import checkpoint, losses, policy, robots, runs
 from mash.config import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -341,7 +341,7 @@ def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer
   _tear(run / "checkpoints" / "10")
   torn = _tree_digest(run / "checkpoints" / "10")
   capfd.readouterr()
-  loaded = runs.load_run(run)
+  loaded = policy.load(run)  # without a trainer, as evaluate, export and sim2sim load
   assert loaded.iteration == 5
   warnings = _stderr_lines(capfd.readouterr().err)
   assert len(warnings) == 1 and warnings[0].startswith("warning: checkpoint step 10") \
