@@ -7,8 +7,8 @@ the controller a robot would run (mash.sim2sim), without the training code.
 
 With a display, MuJoCo's viewer opens with keyboard commands (up/down: forward speed +-0.1 m/s,
 left/right: yaw rate +-0.1 rad/s, space: stand / walk, backspace: reset). Without one, or with
---video, the policy plays --seconds at --command and writes an MP4 (software rendering: about
-0.1 s per frame on a CPU).
+--video, the policy plays --seconds at --command and writes an MP4 or a GIF (software rendering:
+about 0.1 s per frame on a CPU).
 
 Examples:
   python -m experiments.play --policy t1_bipedal_mash
@@ -93,8 +93,8 @@ def main(argv=None) -> None:
   p.add_argument("--stand", action="store_true", help="the standing command instead")
   p.add_argument("--seconds", type=_seconds, default=10.0, help="how long to play headless")
   p.add_argument("--video", default=None, metavar="OUT.mp4",
-                 help="write an MP4 instead of opening the viewer (the default without a display: "
-                      "<policy name>.mp4)")
+                 help="write an MP4 (or an animated GIF: OUT.gif, 400x300 at 12.5 fps) instead of "
+                      "opening the viewer (the default without a display: <policy name>.mp4)")
   p.add_argument("--phase", type=float, default=0.0, help="initial gait phase in [0, 1)")
   args = p.parse_args(argv)
   if not 0.0 <= args.phase < 1.0:
@@ -110,8 +110,8 @@ def main(argv=None) -> None:
         video = f"{Path(args.policy.rstrip('/')).stem or 'policy'}.mp4"
         common.check_path(video, "the video's file name (--video)")
         say(f"no display: playing headless, the video goes to {video}")
-      if Path(video).suffix.lower() != ".mp4":
-        p.error(f"--video '{common.shown_path(video)}': expected a .mp4 file name")
+      if Path(video).suffix.lower() not in (".mp4", ".gif"):
+        p.error(f"--video '{common.shown_path(video)}': expected a .mp4 (or .gif) file name")
       common.check_writable_file(video, "--video")
   except common.UserError as e:
     p.error(str(e))
@@ -146,13 +146,14 @@ def main(argv=None) -> None:
       controller = sim2sim.Controller(export.onnx_session(onnx_path), dep)
       command = np.array([1.0, 0.0, 0.0, 0.0]) if args.stand else np.array([0.0, vx, vy, yaw])
       steps = max(1, int(round(args.seconds / dep.ctrl_dt)))
-      fps = 25.0
+      gif = Path(video).suffix.lower() == ".gif"  # small and slow: for a README or a slide
+      fps, (width, height) = (12.5, (400, 300)) if gif else (25.0, (640, 480))
       say(f"playing {onnx_path} for {args.seconds:g} s at "
           + ("the standing command" if args.stand else
              f"vx {vx:+.2f} m/s, vy {vy:+.2f} m/s, yaw rate {yaw:+.2f} rad/s")
           + f" (rendering {int(args.seconds * fps)} frames, about {0.12 * args.seconds * fps:.0f} s "
           "on a CPU)")
-      writer = sim2sim.VideoWriter(robot.model, video, fps, robot.root)
+      writer = sim2sim.VideoWriter(robot.model, video, fps, robot.root, width, height)
       t0 = time.perf_counter()
       try:
         traj = sim2sim.run_episode(robot, controller, command, steps, args.phase,

@@ -243,7 +243,9 @@ class Controller:
 
 
 class VideoWriter:
-  """Offscreen frames of a torso-tracking camera, written to an MP4 with imageio-ffmpeg.
+  """Offscreen frames of a torso-tracking camera, written to an MP4 with imageio-ffmpeg, or to an
+  animated GIF (a ``.gif`` path; kept in memory and written by Pillow on ``close``, for short
+  clips such as the README's).
 
   Shadows and reflections are off: with software OpenGL (Mesa llvmpipe behind EGL) they make a
   640x480 frame of the T1's meshes cost about 0.8 s instead of 0.12 s.
@@ -261,8 +263,11 @@ class VideoWriter:
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     if floor >= 0:  # a darker floor with grid lines (added to the scene below) shows the motion
       model.geom_rgba[floor] = (0.32, 0.36, 0.42, 1.0)
-    self.writer = imageio.get_writer(str(path), fps=fps, codec="libx264", quality=7,
-                                     macro_block_size=8, ffmpeg_log_level="error")
+    self.path, self.fps = Path(path), fps
+    self.gif_frames = [] if self.path.suffix.lower() == ".gif" else None
+    self.writer = None if self.gif_frames is not None else imageio.get_writer(
+        str(path), fps=fps, codec="libx264", quality=7, macro_block_size=8,
+        ffmpeg_log_level="error")
     self.frames = 0
 
   def _grid(self, data: mujoco.MjData, spacing: float = 0.5, half: int = 8) -> None:
@@ -287,13 +292,23 @@ class VideoWriter:
     self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
     self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
     self._grid(data)
-    with warnings.catch_warnings():  # the first frame starts ffmpeg: a harmless fork warning
-      warnings.filterwarnings("ignore", message=".*os.fork", category=RuntimeWarning)
-      self.writer.append_data(self.renderer.render())
+    frame = self.renderer.render()
+    if self.gif_frames is not None:
+      self.gif_frames.append(frame.copy())
+    else:
+      with warnings.catch_warnings():  # the first frame starts ffmpeg: a harmless fork warning
+        warnings.filterwarnings("ignore", message=".*os.fork", category=RuntimeWarning)
+        self.writer.append_data(frame)
     self.frames += 1
 
   def close(self) -> None:
-    self.writer.close()
+    if self.gif_frames:
+      from PIL import Image
+      images = [Image.fromarray(f).quantize(colors=128) for f in self.gif_frames]
+      images[0].save(self.path, save_all=True, append_images=images[1:], loop=0,
+                     duration=round(1000.0 / self.fps), optimize=True)
+    elif self.writer is not None:
+      self.writer.close()
     self.renderer.close()
 
 

@@ -41,7 +41,7 @@ def test_play_headless_writes_the_video(tmp_path):
     (["--policy", "no_such_policy"], "--policy 'no_such_policy': expected a shipped policy name"),
     (["--policy", "t1_bipedal_mash", "--command", "fast"], "expected VX[,VY[,YAW_RATE]]"),
     (["--policy", "t1_bipedal_mash", "--seconds", "nan"], "expected a duration in (0, 3600]"),
-    (["--policy", "t1_bipedal_mash", "--video", "walk.gif"], "expected a .mp4 file name"),
+    (["--policy", "t1_bipedal_mash", "--video", "walk.avi"], "expected a .mp4 (or .gif) file name"),
     (["--policy", "t1_bipedal_mash", "--video", "/proc/x.mp4"], "--video '/proc/x.mp4' cannot be"),
 ])
 def test_bad_inputs_are_one_line(capsys, monkeypatch, argv, words):
