@@ -18,6 +18,11 @@ class UserError(Exception):
 def user_errors() -> Iterator[None]:
   """Prints known user errors as ``error: <one line>`` and exits 2, without a traceback.
 
+  A write the storage refuses (a full disk, a quota, a read-only file system: ``ENOSPC``,
+  ``EDQUOT``, ``EROFS``), from training (:class:`mash.checkpoint.StorageError`, which names what is
+  kept) or from any other command (a metrics file, an ONNX export), is one ``error:`` line too,
+  with exit status 1: not a mistake in the input, and the same command succeeds once there is room.
+
   A Ctrl-C that reaches here (before training's own signal handling is in place, or a second
   Ctrl-C that aborts a run) prints one line and exits 130, also without a traceback.
 
@@ -35,6 +40,18 @@ def user_errors() -> Iterator[None]:
   except known as e:
     print(f"error: {one_line(str(e))}", file=sys.stderr, flush=True)
     sys.exit(2)
+  except checkpoint.StorageError as e:
+    print(f"error: {one_line(str(e))}", file=sys.stderr, flush=True)
+    sys.exit(1)
+  except Exception as e:  # noqa: BLE001 - only a refusing storage is handled here
+    code = checkpoint.storage_errno(e)
+    if code is None:
+      raise
+    name = getattr(e, "filename", None)
+    where = f" '{shown_path(name)}'" if name else ""
+    print(f"error: cannot write{one_line(where)}: {os.strerror(code)}; free space, then run the "
+          "command again", file=sys.stderr, flush=True)
+    sys.exit(1)
   except KeyboardInterrupt:
     print("\ninterrupted (files already on disk are kept; a run resumes from its last complete "
           "checkpoint)", file=sys.stderr, flush=True)

@@ -13,8 +13,12 @@ SAME command, each with --coordinator HOST:PORT (process 0's address) --num-proc
 --process-id I (0 .. N-1), or the environment variables MASH_COORDINATOR, MASH_NUM_PROCESSES,
 MASH_PROCESS_ID; process 0 writes the run and prints. See docs/multi_device.md.
 
-Exit status: 0 finished; 2 bad input (one line on stderr, nothing written); 130 / 143 stopped by
-Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
+Exit status: 0 finished; 1 a checkpoint or run file could not be written (a full disk, a quota,
+a read-only file system: one line on stderr naming it and the last complete checkpoint, which
+still loads: free space, then --resume); 2 bad input (one line on stderr, nothing written);
+130 / 143 stopped by Ctrl-C (SIGINT) / SIGTERM after saving a checkpoint: continue with --resume.
+A run killed outright (SIGKILL, a power cut) also continues with --resume, from its last complete
+checkpoint.
 """
 
 from __future__ import annotations

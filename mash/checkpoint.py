@@ -8,14 +8,18 @@ list. A step that is listed but does not restore (torn by a copy, a full disk, a
 skipped with a one-line warning on stderr: :func:`restore_latest` returns the newest step that
 restores, and raises :class:`CheckpointError` (one line) when steps exist but none restores. Nothing
 is ever deleted here. Only the newest ``max_to_keep`` steps are kept by :func:`make_manager`'s
-manager. Typed PRNG keys in the state are stored as their raw data and re-wrapped on restore.
-Without a trainer (no template state), :func:`restore_latest_flat` reads some top-level fields as
-saved, ``{key path: array}``, and :func:`unflatten` nests them: how :mod:`mash.policy` loads one.
+manager. A save the storage refuses (a full disk, a quota, a read-only file system) raises
+:class:`StorageError`, one line; the steps already saved stay as they were (its temporary directory
+is replaced by the next save of that step). Typed PRNG keys in the state are stored as their raw
+data and re-wrapped on restore. Without a trainer (no template state), :func:`restore_latest_flat`
+reads some top-level fields as saved, ``{key path: array}``, and :func:`unflatten` nests them: how
+:mod:`mash.policy` loads one.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -33,6 +37,33 @@ from mash.config import TrainConfig, config_from_dict, config_to_dict
 
 class CheckpointError(ValueError):
   """Checkpoint steps exist but none restores (one line, names the directory and the reason)."""
+
+
+class StorageError(Exception):
+  """The storage refused a write (a full disk, a quota, a read-only file system): one line naming
+  the file or checkpoint step and the reason (:func:`mash.runs.train` adds what is kept). Not the
+  user's input: the command-line tools exit 1 on it."""
+
+
+# errno values of a storage that refuses writes, whatever is written.
+STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+# How TensorStore (Orbax's array writer) reports an OS error: a ValueError whose message ends so.
+_OS_ERROR_CODE = re.compile(r"\[os_error_code='(\d+)'\]")
+
+
+def storage_errno(error: BaseException) -> int | None:
+  """The errno of :data:`STORAGE_ERRNOS` behind ``error`` (an ``OSError``, TensorStore's
+  ``ValueError`` with ``[os_error_code='28']``, or one of them as its cause), else None."""
+  seen = set()
+  while error is not None and id(error) not in seen:
+    seen.add(id(error))
+    code = error.errno if isinstance(error, OSError) else None
+    if code is None and (match := _OS_ERROR_CODE.search(str(error))):
+      code = int(match.group(1))
+    if code in STORAGE_ERRNOS:
+      return code
+    error = error.__cause__ or error.__context__
+  return None
 
 
 class Restored(NamedTuple):
@@ -125,13 +156,26 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
 
   Returns:
     Whether a checkpoint was saved (Orbax may skip a step already present).
+
+  Raises:
+    StorageError: the storage refused the write (one line; Orbax's own reports of it, tracebacks
+      from several threads, are silenced). The step's temporary directory is left, never taken
+      for a step; a later save of the step replaces it.
   """
   flat = {k: v for k, v in _to_flat(jax.tree.map(_key_to_data, state)).items()
           if _in_fields(k, fields)}
-  saved = manager.save(step, args=ocp.args.Composite(
-      state=ocp.args.StandardSave(flat), config=ocp.args.JsonSave(config_to_dict(config))))
-  if wait:
-    manager.wait_until_finished()
+  try:
+    with _quiet_absl(), _quiet_failed_writes():
+      saved = manager.save(step, args=ocp.args.Composite(
+          state=ocp.args.StandardSave(flat), config=ocp.args.JsonSave(config_to_dict(config))))
+      if wait:
+        manager.wait_until_finished()
+  except Exception as e:  # noqa: BLE001 - only a refusing storage is turned into one line
+    code = storage_errno(e)
+    if code is None:
+      raise
+    raise StorageError(f"cannot write checkpoint step {step} in '{manager.directory}': "
+                       f"{os.strerror(code)}") from None
   return saved
 
 
@@ -253,6 +297,31 @@ def _quiet_absl() -> Iterator[None]:
     yield
   finally:
     logger.setLevel(level)
+
+
+def _drops_closed_loop(hook: Callable[[Any], None]) -> Callable[[Any], None]:
+  """``sys.unraisablehook`` ``hook`` but silent on ``RuntimeError('Event loop is closed')``."""
+
+  def drop(unraisable) -> None:
+    error = unraisable.exc_value
+    if not (isinstance(error, RuntimeError) and str(error) == 'Event loop is closed'):
+      hook(unraisable)
+
+  drop.drops_closed_loop = True
+  return drop
+
+
+@contextlib.contextmanager
+def _quiet_failed_writes() -> Iterator[None]:
+  """When an Orbax save fails, its writes still in flight (TensorStore's threads) finish into the
+  event loop the failure closed, and Python prints each as ``Exception ignored ... Event loop is
+  closed`` with a traceback, during the save or just after it. Those reports (only those) are
+  dropped during a save, and for the rest of the process after one that failed."""
+  previous = sys.unraisablehook
+  if not getattr(previous, 'drops_closed_loop', False):
+    sys.unraisablehook = _drops_closed_loop(previous)
+  yield  # on an exception: the filter stays, for the stragglers
+  sys.unraisablehook = previous
 
 
 def restore_latest(directory: str | os.PathLike, template_state: Any,

@@ -8,7 +8,11 @@ end the run after the call in flight, with a complete checkpoint to ``--resume``
 signal aborts at once; Orbax's atomic step directories still leave the last complete checkpoint
 loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
 checkpoint step that does not restore is skipped with a warning (:func:`mash.checkpoint.restore_latest`);
-on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted.
+on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted. A kill
+(SIGKILL, a power cut) loses at most the calls since the last complete checkpoint: a resume drops
+the log rows past it, and a torn last row. A checkpoint or run file the storage refuses (a full
+disk, a quota, a read-only file system) ends the run with one line,
+:class:`mash.checkpoint.StorageError`, naming it and the last complete checkpoint.
 Evaluation, export and sim-to-sim load a run's policy without this module: :mod:`mash.policy`.
 
 Several devices (``jax.device_count() > 1``: one process with several GPUs, or several processes
@@ -190,23 +194,36 @@ def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_it
   return rows, seed_rows
 
 
+def _row_iteration(row: dict[str | None, Any]) -> int | None:
+  """The iteration of a whole CSV row (every column there, none extra), else None."""
+  if None in row or any(v is None for v in row.values()):
+    return None
+  try:
+    return int(row["iteration"])
+  except (KeyError, ValueError):
+    return None
+
+
 class _CsvLog:
-  """Appends rows to a CSV, writing the header once; on resume drops rows past ``keep_until``."""
+  """Appends rows to a CSV, writing the header once. On resume it keeps only the whole rows up to
+  ``keep_until``: a write cut short (a kill, a full disk) leaves a last line without its line end,
+  which may still parse (``10,...`` cut after ``1`` reads as iteration 1), so it is dropped as
+  torn, and so are rows that do not parse."""
 
   def __init__(self, path: Path, keep_until: int | None):
     self.path = path
     self.header: list[str] | None = None
     if path.exists() and keep_until is not None:
-      with path.open() as f:
-        reader = csv.DictReader(f)
-        self.header = reader.fieldnames
-        kept = [r for r in reader if int(r["iteration"]) <= keep_until]
+      text = path.read_text(errors="replace")
+      reader = csv.DictReader(io.StringIO(text[:text.rfind("\n") + 1]))
+      self.header = reader.fieldnames
+      kept = [r for r in reader if (it := _row_iteration(r)) is not None and it <= keep_until]
+      out = io.StringIO(newline="")
       if self.header is not None:
-        text = io.StringIO(newline="")
-        w = csv.DictWriter(text, fieldnames=self.header)
+        w = csv.DictWriter(out, fieldnames=self.header)
         w.writeheader()
         w.writerows(kept)
-        _write_atomic(path, text.getvalue())
+      _write_atomic(path, out.getvalue())  # empty when even the header was torn
 
   def write(self, rows: list[dict[str, Any]]) -> None:
     if not rows:
@@ -249,6 +266,29 @@ def _set_aside(out: Path, steps: tuple[int, ...]) -> None:
     os.replace(out / "checkpoints" / str(step), dest)
     print(f"warning: moved checkpoint step {step}, which does not restore, to '{dest}'",
           file=sys.stderr, flush=True)
+
+
+def _kept(out: Path, step: int | None) -> str:
+  """What a run stopped by a refused write keeps, and how to go on."""
+  if step is None:
+    return "no checkpoint was saved: free space, then start the run again in another --out"
+  return f"checkpoint step {step} is complete: free space, then --resume {out}"
+
+
+@contextlib.contextmanager
+def _writing(what: str, out: Path, kept_step: int | None) -> Iterator[None]:
+  """Turns a write the storage refuses (a full disk, a quota, a read-only file system) into one
+  :class:`mash.checkpoint.StorageError` line: ``what`` (or the checkpoint step) could not be
+  written, why, and the last complete checkpoint, ``kept_step``, to resume from."""
+  try:
+    yield
+  except checkpoint.StorageError as e:  # a checkpoint save: the message names the step
+    raise checkpoint.StorageError(f"{e}; {_kept(out, kept_step)}") from None
+  except OSError as e:
+    if e.errno not in checkpoint.STORAGE_ERRNOS:
+      raise
+    raise checkpoint.StorageError(f"cannot write {what}: {os.strerror(e.errno)}; "
+                                  f"{_kept(out, kept_step)}") from None
 
 
 # Calls after the first (which compiles) timed before the run says how long it will take.
@@ -345,6 +385,9 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   Raises:
     RunError: ``out_dir`` cannot be used as asked (one line).
     mash.experiment.ConfigError: the config does not fit the devices (one line).
+    mash.checkpoint.StorageError: the storage refused a checkpoint or a run file (a full disk, a
+      quota, a read-only file system); one line naming it and the last complete checkpoint,
+      which stays loadable (``resume`` goes on from it once there is space).
   """
   from tqdm import tqdm
   from tensorboardX import SummaryWriter
@@ -373,12 +416,14 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   if trainer is None:
     trainer = build_distributed_trainer(cfg) if on_mesh else build_trainer(cfg)
   to_host = distributed.gather_to_host if on_mesh else jax.device_get
-  start_iteration = 0
+  start_iteration, saved = 0, None
   saved_fields = None if cfg.checkpoint_env_state else checkpoint.LEARNING_FIELDS
   if resume:
     restored = restore_run(out, trainer, cfg, fields=saved_fields)
+    saved = restored.step  # the last complete checkpoint, named when a write is refused
     if primary:
-      _set_aside(out, restored.skipped)
+      with _writing(f"'{out / 'checkpoints_unrestorable'}'", out, saved):
+        _set_aside(out, restored.skipped)
     _sync("mash.runs.set_aside")
     state = restored.state
     start_iteration = int(np.asarray(to_host(state.iteration)).reshape(-1)[0])
@@ -387,16 +432,18 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   else:
     state = init_state(trainer, cfg)
     if primary:
-      out.mkdir(parents=True, exist_ok=True)
-      _write_atomic(out / "config.json", experiment.to_json(cfg))
+      with _writing(f"'{out / 'config.json'}'", out, saved):
+        out.mkdir(parents=True, exist_ok=True)
+        _write_atomic(out / "config.json", experiment.to_json(cfg))
     _sync("mash.runs.config_written")
   manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
 
   progress = seed_log = writer = None
   if primary:
-    progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
-    seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
-    writer = SummaryWriter(str(out / "tensorboard"))
+    with _writing(f"the logs in '{out}'", out, saved):
+      progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
+      seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
+      writer = SummaryWriter(str(out / "tensorboard"))
   total_calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
   if max_calls is not None:
     total_calls = min(total_calls, max_calls)
@@ -424,8 +471,9 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
         iteration = rows[-1]["iteration"]
         last_reward = rows[-1]["episode_reward"]
         if primary:
-          progress.write(rows)
-          seed_log.write(seed_rows)
+          for log, new_rows in ((progress, rows), (seed_log, seed_rows)):
+            with _writing(f"'{log.path}'", out, saved):
+              log.write(new_rows)
           for r in rows:
             for k, v in r.items():
               if k not in ("iteration", "env_steps", "wall_s"):
@@ -438,10 +486,12 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
               else None
         last = call == total_calls - 1 or stop
         if (call + 1) % cfg.checkpoint_every == 0 or last:  # collective: every process saves
-          if not checkpoint.save(manager, iteration, state, cfg.train,
-                                 fields=saved_fields) and primary:
+          with _writing(f"checkpoint step {iteration}", out, saved):
+            new = checkpoint.save(manager, iteration, state, cfg.train, fields=saved_fields)
+          if not new and primary:
             print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
                   f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
+          saved = iteration
         if primary and len(call_s) == ETA_CALLS and call < total_calls - 1:
           bar.write(_expected_duration(call_s, cfg.train.iterations_per_call,
                                        cfg.train.num_iterations - iteration), file=sys.stderr)
@@ -457,7 +507,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
     if writer is not None:
       writer.close()
   if primary:
-    plot_reward_curve(out)
+    with _writing(f"'{out / 'reward_curve.png'}'", out, saved):
+      plot_reward_curve(out)
   steady = float(np.median(call_s)) if call_s else None
   if primary:
     final_reward = read_progress(out)["episode_reward"][-1].item() if iteration else None
@@ -477,6 +528,7 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
       "backend": jax.default_backend(), "devices": devices, "processes": jax.process_count(),
   }
   if primary:
-    _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
+    with _writing(f"'{out / 'summary.json'}'", out, saved):
+      _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
   _sync("mash.runs.done")
   return summary
