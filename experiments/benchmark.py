@@ -9,6 +9,9 @@ hold on a noisy machine.
 ``--stages env,mash,brax_ppo`` measures only the named stages (of ``STAGES``), for a bounded run
 on a lent machine; ratios are given for the pairs measured.
 
+``--impl warp`` runs the physics through MuJoCo Warp instead of MJX's JAX implementation (the
+``impl`` field of the JSON says which; Warp's contact buffer is sized for the batch measured).
+
 ``--breakdown`` splits an iteration's time into the env rollout, the updates alone and the rest, for
 MASH and PPO (``breakdown.json``). ``--sweep batch`` measures throughput against batch size and
 writes ``benchmarks/scaling_batch.*``; ``--sweep physics`` measures each solver setting tried
@@ -154,11 +157,19 @@ def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
           "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
 
 
+def _env_config(task: str, impl: str, batch: int, **fields):
+  """The benchmarked env's config: physics through ``impl``, Warp's contacts sized for ``batch``."""
+  from mash import env as env_lib
+  from mash import robots
+  physics = robots.PhysicsConfig(impl=impl, warp_max_envs=batch)
+  return env_lib.EnvConfig(task=task, physics=physics, **fields)
+
+
 def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None,
-                  stages: tuple[str, ...] = STAGES) -> dict:
-  """The figures of ``stages`` (default: all) at one batch. With ``out``, the JSON is rewritten
-  after every stage (``complete`` false until the last), so a run stopped early keeps what it
-  measured."""
+                  stages: tuple[str, ...] = STAGES, impl: str = "jax") -> dict:
+  """The figures of ``stages`` (default: all) at one batch, the physics run by MJX's ``impl``
+  ('jax' or 'warp'). With ``out``, the JSON is rewritten after every stage (``complete`` false
+  until the last), so a run stopped early keeps what it measured."""
   import jax
   from mash import config as train_config
   from mash import env as env_lib
@@ -166,12 +177,13 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
   batch = batch or (256 if quick else 1024)
   unroll = 24
   iters = 2 if quick else 4
-  env_cfg = env_lib.EnvConfig(task=task)
+  env_cfg = _env_config(task, impl, batch)
   env = env_lib.MashEnv(env_cfg)
   result = {"device": _device_kind(), "backend": jax.default_backend(),
-            "n_devices": jax.device_count(), "batch": batch, "substeps": env.n_substeps,
-            "task": task, "quick": quick, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "stages": list(stages), "complete": False}
+            "n_devices": jax.device_count(), "impl": impl, "batch": batch,
+            "substeps": env.n_substeps, "task": task, "quick": quick,
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "stages": list(stages),
+            "complete": False}
   todo = [s for s in STAGES if s in stages]
   label = lambda name: f"[{todo.index(name) + 1}/{len(todo)}]"
 
@@ -228,15 +240,16 @@ def _ratios(result: dict) -> dict:
           if figures.get(a) is not None and figures.get(b) is not None}
 
 
-def sweep_batch(batches: list[int], task: str, stem: Path | None = None) -> list[dict]:
-  """Physics, env and MASH training throughput per batch size (one process).
+def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
+                impl: str = "jax") -> list[dict]:
+  """Physics, env and MASH training throughput per batch size (one process), through MJX's
+  ``impl``.
 
   With ``stem``, the table is rewritten after every batch (a run stopped early keeps its rows)."""
-  import jax
   from mash import config as train_config
   from mash import env as env_lib
   from mash import throughput
-  env = env_lib.MashEnv(env_lib.EnvConfig(task=task))
+  env = env_lib.MashEnv(_env_config(task, impl, max(batches)))
   rows = []
   for b in batches:
     print(f"batch {b}", file=sys.stderr, flush=True)
@@ -247,7 +260,7 @@ def sweep_batch(batches: list[int], task: str, stem: Path | None = None) -> list
                               critic_hidden=(256, 128, 64))
     train_sps, _ = train_throughput(env, cfg, calls=1)
     rows.append({"batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
-                 "train_env_steps_per_s": train_sps, "device": _device_kind()})
+                 "train_env_steps_per_s": train_sps, "device": _device_kind(), "impl": impl})
     if stem is not None:
       _write_table(rows, stem, "batch")
   return rows
@@ -313,6 +326,18 @@ def _write_table(rows: list[dict], stem: Path, x: str) -> None:
     plt.close(fig)
 
 
+def _check_impl(impl: str, sweep: str | None) -> None:
+  """``--impl``: a known MJX implementation, installed; the physics sweep measures MJX's JAX one
+  only (its drift figures come from MuJoCo C)."""
+  from mash import robots
+  try:
+    robots.check_physics(robots.PhysicsConfig(impl=impl))
+  except ValueError as e:
+    raise common.UserError(f"--{e}") from None
+  if impl != "jax" and sweep == "physics":
+    raise common.UserError("--sweep physics measures the jax implementation only; drop --impl")
+
+
 def main(argv=None) -> None:
   p = common.Parser(prog="python -m experiments.benchmark", description=__doc__.splitlines()[0])
   p.add_argument("--quick", action="store_true", help="smaller batch and fewer repeats (< 15 min CPU)")
@@ -327,9 +352,12 @@ def main(argv=None) -> None:
   p.add_argument("--stages", default=",".join(STAGES),
                  help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
+  p.add_argument("--impl", default="jax",
+                 help="MJX implementation of the physics: jax (default) or warp (MuJoCo Warp)")
   args = p.parse_args(argv)
   with common.user_errors():
     common.check_paths({"--out": args.out, "--dir": args.dir})
+    _check_impl(args.impl, args.sweep)
     if args.task not in ("bipedal", "armswing"):
       raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
     if args.batch is not None and not 0 <= args.batch <= MAX_BATCH:
@@ -348,7 +376,7 @@ def main(argv=None) -> None:
       if not batches or not all(1 <= b <= MAX_BATCH for b in batches):
         raise common.UserError(f"--batches '{args.batches}': expected comma-separated numbers of "
                                f"envs in [1, {MAX_BATCH}], e.g. 64,256,1024")
-      rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch")
+      rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch", args.impl)
       print(json.dumps(rows, indent=2))
       return
     if args.sweep == "physics":
@@ -363,11 +391,11 @@ def main(argv=None) -> None:
       cfg = dataclasses.replace(train_config.TrainConfig(), num_envs=batch, unroll_length=24,
                                 iterations_per_call=2, actor_hidden=(256, 128, 64),
                                 critic_hidden=(256, 128, 64))
-      result = {"batch": batch, "device": _device_kind(),
+      result = {"batch": batch, "device": _device_kind(), "impl": args.impl,
                 "date": time.strftime("%Y-%m-%d %H:%M:%S")}
       for partition in ("mash", "ppo"):
         print(f"breakdown: {partition}", file=sys.stderr, flush=True)
-        env = env_lib.MashEnv(env_lib.EnvConfig(task=args.task, partition=partition))
+        env = env_lib.MashEnv(_env_config(args.task, args.impl, batch, partition=partition))
         result[partition] = train_breakdown(env, cfg)
       result["updates_alone_mash_vs_ppo"] = (result["mash"]["updates_alone_s"]
                                              / result["ppo"]["updates_alone_s"])
@@ -382,7 +410,7 @@ def main(argv=None) -> None:
       raise common.UserError(f"--stages '{args.stages}': expected a comma-separated subset of "
                              f"{','.join(STAGES)}")
     result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"),
-                           stages)
+                           stages, args.impl)
     print(json.dumps(result))
 
 

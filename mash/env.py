@@ -281,6 +281,62 @@ def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-
   return gain
 
 
+# MuJoCo's contact constraint types: condim 1, a pyramidal and an elliptic friction cone.
+_CONTACT_ROWS = tuple(int(c) for c in (mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS,
+                                        mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL,
+                                        mujoco.mjtConstraint.mjCNSTR_CONTACT_ELLIPTIC))
+
+
+def put_physics(model: mujoco.MjModel, physics: robots.PhysicsConfig,
+                device: jax.Device) -> tuple[mjx.Model, mjx.Data]:
+  """The MJX model of ``model`` and one env's fresh MJX data, for ``physics.impl``, on ``device``.
+
+  For Warp, the contact buffer is sized for ``physics.warp_max_envs`` envs, and Warp's report of
+  a solver that used all its iterations, which ours does by choice (``physics.iterations``), is off.
+
+  Raises:
+    ValueError: impl 'warp' on a device other than a GPU or the CPU.
+  """
+  if physics.impl == "jax":
+    mjx_model = mjx.put_model(model, impl="jax", device=device)
+    return mjx_model, mjx.make_data(mjx_model, impl="jax", device=device)
+  if device.platform not in ("gpu", "cpu"):
+    raise ValueError(f"physics.impl 'warp' runs on an NVIDIA GPU or the CPU, not on "
+                     f"{device.platform} ({device.device_kind}); use impl jax")
+  import warp
+  from mujoco.mjx.third_party import mujoco_warp
+  warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no startup banner
+  mjx_model = mjx.put_model(model, impl="warp", device=device)
+  opt = mjx_model.opt._impl
+  quiet = opt.warn_overflow & ~(mujoco_warp.OverflowType.ITERATIONS
+                                | mujoco_warp.OverflowType.LS_ITERATIONS)
+  mjx_model = mjx_model.replace(opt=mjx_model.opt.replace(_impl=opt.replace(
+      warn_overflow=int(quiet))))
+  data = mjx.make_data(model, impl="warp", device=device,
+                       naconmax=2 * model.npair * physics.warp_max_envs)
+  return mjx_model, data
+
+
+def contact_rows(data: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """One env's contacts as rows ``[C]``: distance (m; +inf where a row is no contact), first geom
+  id, and the force of the constraint row (N; a condim-1 contact's one row is its normal force).
+
+  MJX keeps contacts in its implementation-specific part. The JAX implementation has one fixed
+  list per env (every candidate pair, touching or not), each row the contact's first constraint
+  row. MuJoCo Warp keeps one buffer for all the envs of a batch (``contact__*``), so an env finds
+  its contacts from its own constraint rows (``efc__*``): touching contacts only, a contact with
+  friction once per row of its cone.
+  """
+  impl = data._impl
+  if data.impl == mjx.Impl.JAX:
+    return impl.contact.dist, impl.contact.geom1, impl.efc_force[impl.contact.efc_address]
+  rows = jnp.arange(impl.efc__type.shape[-1])
+  is_contact = (rows < impl.nefc) & jnp.isin(impl.efc__type, jnp.array(_CONTACT_ROWS))
+  con = jnp.where(is_contact, impl.efc__id, 0)
+  dist = jnp.where(is_contact, impl.contact__dist[con], jnp.inf)
+  return dist, impl.contact__geom[con, 0], impl.efc__force
+
+
 class MashEnv(brax_base.Env):
   """A humanoid whose limbs are agents (see module docstring)."""
 
@@ -294,7 +350,8 @@ class MashEnv(brax_base.Env):
     self.mj_model = robots.build_model(spec, config.physics)
     # This process's first device: MJX's default, jax.devices()[0], belongs to process 0 in a
     # multi-process run, and other processes cannot use arrays placed there.
-    self.mjx_model = mjx.put_model(self.mj_model, impl="jax", device=jax.local_devices()[0])
+    self.mjx_model, self._data0 = put_physics(self.mj_model, config.physics,
+                                              jax.local_devices()[0])
     m = self.mj_model
 
     # Joint-indexed tables, all in spec.joints order ([J]).
@@ -475,15 +532,22 @@ class MashEnv(brax_base.Env):
         feet_xy=data.xpos[self._feet][:, :2])
 
   def contacts(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
-    """Foot contact mask [2] and normal force of each penalized pair [P] (N)."""
-    contact = data._impl.contact  # MJX keeps contacts in its implementation-specific part
-    touching = contact.dist < 1e-3
-    foot = jnp.stack([jnp.any(touching & jnp.isin(contact.geom2, self._soles[i])
-                              | touching & jnp.isin(contact.geom1, self._soles[i])) for i in range(2)])
-    normal = data._impl.efc_force[contact.efc_address]  # penalty pairs are condim 1: one row
-    is_pair = contact.geom1[:, None] == self._penalty_geoms[None, :]
-    penalty = jnp.sum(jnp.where(is_pair & (contact.dist < 0)[:, None], normal[:, None], 0.0), 0)
+    """Foot contact mask [2] and normal force of each penalized pair [P] (N).
+
+    A foot touches when one of its sole spheres is within 1 mm of the floor (the plane z = 0),
+    read from the geometry, the sphere-plane distance of the contact list, so that both MJX
+    implementations agree (Warp lists only the contacts that touch).
+    """
+    sole_gap = data.geom_xpos[self._soles][..., 2] - self.spec.sole_radius  # [2, n_sole] (m)
+    foot = jnp.any(sole_gap < 1e-3, axis=-1)
+    dist, geom1, force = contact_rows(data)  # penalty pairs are condim 1: one row, the normal
+    is_pair = geom1[:, None] == self._penalty_geoms[None, :]
+    penalty = jnp.sum(jnp.where(is_pair & (dist < 0)[:, None], force[:, None], 0.0), 0)
     return foot.astype(jnp.float32), penalty
+
+  def initial_data(self) -> mjx.Data:
+    """The MJX state of one env at the home pose, at rest."""
+    return self._data0.replace(qpos=self._home_qpos)
 
   def _full_target(self, action: jax.Array) -> jax.Array:
     """[J] joint targets: controlled joints from the action, held joints at default."""
@@ -503,8 +567,7 @@ class MashEnv(brax_base.Env):
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
     dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints,
                           env_steps)
-    data = mjx.make_data(self.mjx_model, impl="jax", device=jax.local_devices()[0])
-    data = data.replace(qpos=self._home_qpos)
+    data = self.initial_data()
     if command is None:
       command = self._sample_command(k_cmd)
     else:
@@ -725,7 +788,8 @@ class MashEnv(brax_base.Env):
                       nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
     pick = lambda new, old: jnp.where(done > 0, new, old)
     return next_state.replace(
-        pipeline_state=jax.tree.map(pick, fresh.pipeline_state, data),
+        # Data.where: Warp's contact buffer is shared by the batch, not one per env.
+        pipeline_state=data.where(done > 0, fresh.pipeline_state),
         obs=jax.tree.map(pick, fresh.obs, obs),
         info=jax.tree.map(pick, fresh.info, info))
 

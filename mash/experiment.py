@@ -201,6 +201,13 @@ def check(cfg: ExperimentConfig) -> None:
     train_config.derived(cfg.train)
   except ValueError as e:
     raise ConfigError(str(e)) from None
+  physics = cfg.env.physics
+  if physics.impl == "warp" and cfg.train.num_envs * cfg.seeds > physics.warp_max_envs:
+    # MuJoCo Warp's contact buffer is shared by the batch and sized for warp_max_envs: beyond it,
+    # contacts would be dropped without a word.
+    raise ConfigError(f"env.physics.warp_max_envs={physics.warp_max_envs} must be at least the "
+                      f"envs stepped at once, train.num_envs x seeds = "
+                      f"{cfg.train.num_envs * cfg.seeds}")
 
 
 _KINDS = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}

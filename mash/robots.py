@@ -187,6 +187,11 @@ class PhysicsConfig:
     iterations: Newton solver iterations.
     ls_iterations: line-search iterations.
     integrator: 'euler' (MJX's fastest; `eulerdamp` off since joint damping is tiny).
+    impl: MJX's implementation: 'jax' (any device) or 'warp' (MuJoCo Warp, for NVIDIA GPUs; it
+      also runs on Warp's CPU device, slowly, for checks). Warp needs ``pip install -e ".[warp]"``.
+    warp_max_envs: impl 'warp' only: environments one program steps at once on a device (all
+      envs of all seeds). MJX keeps Warp's contacts in one buffer shared by them, sized
+      ``2 * npair`` contacts per env for this many; more envs overflow it and Warp drops contacts.
 
 
   The sane range of every number is checked by :func:`check_physics`.
@@ -196,15 +201,27 @@ class PhysicsConfig:
   iterations: int = 1
   ls_iterations: int = 4
   integrator: str = "euler"
+  impl: str = "jax"
+  warp_max_envs: int = 8192
 
 
 INTEGRATORS = ("euler", "implicitfast")
+IMPLS = ("jax", "warp")
 MAX_SOLVER_ITERATIONS = 1000
+MAX_WARP_ENVS = 2**20  # TrainConfig's cap on num_envs (mash.config.SIZE_CAPS)
+
+
+def warp_installed() -> bool:
+  """Whether MJX can run MuJoCo Warp here: warp-lang and MJX's bundled mujoco_warp import (MJX
+  tried both, quietly, when ``mash`` was imported)."""
+  from mujoco.mjx import warp as mjx_warp
+  return bool(mjx_warp.WARP_INSTALLED) and mjx_warp.mujoco_warp is not None
 
 
 def check_physics(physics: PhysicsConfig) -> None:
   """Checks the solver settings without building anything: a physics step in (0, 0.1] s, solver
-  and line-search iterations in [1, 1000], a known integrator.
+  and line-search iterations in [1, 1000], a known integrator, a known implementation that is
+  installed, a Warp env count in [1, 2**20].
 
   Raises:
     ValueError: one line naming the field, its value and what was expected.
@@ -215,6 +232,12 @@ def check_physics(physics: PhysicsConfig) -> None:
   if physics.integrator not in INTEGRATORS:
     raise ValueError(f"integrator '{physics.integrator}' is unknown; expected one of "
                      f"{', '.join(INTEGRATORS)}")
+  if physics.impl not in IMPLS:
+    raise ValueError(f"impl '{physics.impl}' is unknown; expected one of {', '.join(IMPLS)}")
+  check_number("warp_max_envs", physics.warp_max_envs, 1, MAX_WARP_ENVS, "envs")
+  if physics.impl == "warp" and not warp_installed():
+    raise ValueError("impl 'warp' needs MuJoCo Warp, which is not installed here: "
+                     'pip install -e ".[warp]" (or leave impl at jax)')
 
 
 def mjcf_path(spec: RobotSpec) -> str:

@@ -41,10 +41,12 @@ def bare_physics(env: env_lib.MashEnv, batch: int, control_steps: int,
   """Physics steps/s of plain ``mjx.step`` on the env's model: the same substeps, no env around it.
 
   Starts from the home pose, holds ``ctrl`` at zero torque after the first substep's PD hold.
+  Runs the env's MJX implementation (``env.config.physics.impl``).
   """
   model = env.mjx_model
-  data0 = mjx.make_data(model, impl="jax").replace(qpos=env._home_qpos)
-  data = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), data0)
+  data0 = env.initial_data()
+  # Batched by vmap, not by broadcasting every field: Warp's contact buffer is one for the batch.
+  data = jax.vmap(lambda _: data0)(jnp.arange(batch))
   n = control_steps * env.n_substeps
 
   @jax.jit
