@@ -127,7 +127,7 @@ class EnvConfig:
 # 1e5 s, keeps every step count of an episode far below int32's limit.
 ENV_BOUNDS = (
     ("ctrl_dt", 1e-3, 1.0, "s", False),
-    ("episode_length", 1, 10_000_000, "control steps", False),
+    ("episode_length", 1, 2**30, "control steps", False),  # 2**30: "never" (Brax's wrapper)
     ("action_scale", 0.0, 10.0, "rad", True),
     ("action_clip", 0.0, 1e3, "", True),
     ("gait_cycle_s", 0.0, 10.0, "s", True),
