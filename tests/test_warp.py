@@ -85,7 +85,8 @@ def test_the_cli_without_warp_prints_one_line_and_nothing_else():
 # --------------------------------------------------------------------------------- with Warp
 @pytest.fixture(scope="module")
 def warp():
-  return pytest.importorskip("warp")
+  return pytest.importorskip("warp", reason="MuJoCo Warp is not installed here (an optional extra: "
+                             'pip install -e ".[warp]"); the default install runs the JAX physics')
 
 
 def _rollout(impl: str, steps: int) -> list:
