@@ -85,9 +85,10 @@ def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.E
   commands = env_lib.CommandConfig(vx=(cfg.command_vx, cfg.command_vx), vy=(0.0, 0.0),
                                    yaw_rate=(0.0, 0.0), standing_prob=0.0,
                                    resample_s=10 * cfg.episode_s)
-  # Evaluation draws from the friction range training ends on, not the curriculum's start.
+  # Evaluation draws from the friction range training ends on, not the curriculum's start nor
+  # the slippery floors' extra share.
   randomization = dataclasses.replace(env_config.randomization, enabled=cfg.randomization,
-                                      friction_ramp_steps=0)
+                                      friction_ramp_steps=0, slippery_share=0.0)
   if not cfg.pushes:
     randomization = dataclasses.replace(randomization, push_force=(0.0, 0.0),
                                         push_torque=(0.0, 0.0))

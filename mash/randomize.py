@@ -53,6 +53,12 @@ class DomainRandConfig:
       ``RewardParams.penalty_ramp_steps``). None: no curriculum.
     friction_ramp_steps: length of that curriculum (control steps); 0: ``friction`` throughout.
       Evaluation always draws from ``friction``, the range training ends on.
+    slippery_share: the fraction of fresh training episodes (ours; the paper has none) whose floor
+      friction is drawn from ``slippery_friction`` instead, all through training: the slippery
+      floors are where CPU policies fall, and under ``friction`` alone they are ~9 % of the
+      episodes. 0 (default): every floor from ``friction`` (or its curriculum). Evaluation never
+      applies it.
+    slippery_friction: the range of those floors.
 
 
   The sane range of every number is checked by :func:`check_config`.
@@ -75,12 +81,15 @@ class DomainRandConfig:
   torque_noise: float = 0.02
   friction_initial: tuple[float, float] | None = None
   friction_ramp_steps: int = 0
+  slippery_share: float = 0.0
+  slippery_friction: tuple[float, float] = (0.1, 0.3)
 
 
 # (field, lowest lo, highest hi, unit, lo must be above the lowest): the sane bounds of each
 # range; ours, each far outside the paper's ranges, so a value beyond one is a typo.
 RANGE_BOUNDS = (
     ("friction", 0.0, 10.0, "", True),
+    ("slippery_friction", 0.0, 10.0, "", True),
     ("mass_scale", 0.0, 10.0, "", True),
     ("com_offset", -1.0, 1.0, "m", False),
     ("motor_delay_ms", 0.0, 1000.0, "ms", False),
@@ -110,6 +119,9 @@ def check_config(config: DomainRandConfig) -> None:
   if config.friction_initial is not None:
     check_range("friction_initial", config.friction_initial, 0.0, 10.0, open_low=True)
   check_number("push_interval_s", config.push_interval_s, 0.0, MAX_INTERVAL_S, "s")
+  if not 0.0 <= config.slippery_share <= 1.0:  # also NaN
+    raise ValueError("slippery_share must be a fraction of the episodes in [0, 1], got "
+                     f"{config.slippery_share}")
   if not 0.0 <= config.torque_noise < 1.0:  # also NaN
     raise ValueError("torque_noise must be a fraction of the torque limit in [0, 1), got "
                      f"{config.torque_noise}")
@@ -170,14 +182,20 @@ def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
   """Draws one environment's parameters (nominal when ``config.enabled`` is False).
 
   ``env_steps`` ([] int, control steps of this env slot since training began) places the floor
-  friction's draw on its curriculum (:func:`friction_range`); None: the final range.
+  friction's draw on its curriculum (:func:`friction_range`); None: the final range. With
+  ``config.slippery_share`` > 0 that share of the draws comes from ``slippery_friction``.
   """
   if not config.enabled:
     return nominal(nbody, n_joints)
   k = jax.random.split(key, 9)
   u = lambda key, r, shape=(): jax.random.uniform(key, shape, minval=r[0], maxval=r[1])
+  friction = u(k[0], friction_range(config, env_steps))
+  if config.slippery_share > 0:  # its own keys: the other draws stay as they were without it
+    k_pick, k_slip = jax.random.split(jax.random.fold_in(key, 9))
+    friction = jnp.where(jax.random.uniform(k_pick) < config.slippery_share,
+                         u(k_slip, config.slippery_friction), friction)
   return DomainParams(
-      friction=u(k[0], friction_range(config, env_steps)),
+      friction=friction,
       mass_scale=u(k[1], config.mass_scale, (nbody,)),
       com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
       joint_damping=u(k[4], config.joint_damping, (n_joints,)),

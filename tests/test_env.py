@@ -431,6 +431,24 @@ def test_friction_curriculum_range_hand_values():
                                     ).randomization.friction_ramp_steps == 0
 
 
+def test_slippery_share_draws_that_share_of_floors_from_its_range():
+  """With slippery_share p, a floor is below 0.3 with probability p + (1 - p) 0.2 / 1.1 (its
+  own range U[0.1, 0.3] plus the paper's U[0.1, 1.2]); the other parameters' draws are those
+  without it; evaluation never applies it."""
+  keys = jax.random.split(jax.random.key(0), 20_000)
+  draw = lambda cfg: jax.jit(jax.vmap(lambda k: randomize.sample(k, cfg, 5, 3)))(keys)
+  plain = draw(randomize.DomainRandConfig())
+  mixed = draw(randomize.DomainRandConfig(slippery_share=0.25))
+  f = np.asarray(mixed.friction)
+  assert f.min() >= 0.1 and f.max() <= 1.2
+  np.testing.assert_allclose((f < 0.3).mean(), 0.25 + 0.75 * 0.2 / 1.1, atol=0.01)
+  np.testing.assert_allclose((np.asarray(plain.friction) < 0.3).mean(), 0.2 / 1.1, atol=0.01)
+  for field in ("mass_scale", "com_offset", "armature", "kp_scale"):
+    np.testing.assert_array_equal(getattr(mixed, field), getattr(plain, field))
+  env_cfg = env_lib.EnvConfig(randomization=randomize.DomainRandConfig(slippery_share=0.25))
+  assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
+                                    ).randomization.slippery_share == 0.0
+
 def test_friction_curriculum_follows_each_env_slot_through_resets():
   """Fresh episodes (every auto-reset, and a reset told the clock) draw the floor friction from
   the range of the curriculum at that slot's env step count: U[0.1, 0.2] at 0, U[0.1, 0.7]
