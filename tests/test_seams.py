@@ -7,10 +7,15 @@
 - Gradient averaging over devices: ``train.loss_gradients`` on two devices, each holding half of a
   minibatch, must equal one device's gradient on the whole minibatch (a ``psum`` in place of the
   ``pmean`` doubles it; Adam's scale invariance would hide that from a comparison of parameters).
+- sim2sim's robot side against the env: the MJX state copied into MuJoCo C (same model, converged
+  solvers), then the sensor reads, the exported policy's action on them, the gait clock and the
+  state after each control step's PD loop must agree. Checked to fail with the torque held over
+  the control period, roll and pitch swapped in the readings, or the clock a step ahead.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -20,6 +25,7 @@ from pathlib import Path
 import chex
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
@@ -152,3 +158,72 @@ def test_two_devices_average_gradients_to_the_whole_minibatch():
   result = subprocess.run([sys.executable, "-c", TWO_DEVICE_GRADIENTS], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
   assert result.returncode == 0 and "OK" in result.stdout, result.stdout + result.stderr[-3000:]
+
+
+SIM2SIM_STEPS = 3  # control steps compared after the copied state
+
+
+def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_path):
+  """sim2sim's robot side (sensor reads, the ONNX inputs built from them, the PD loop at the
+  motor rate) against the env's on one state: MuJoCo C built with the env's model, collision set
+  and (converged) solver settings, the MJX state copied in (warm start included), randomization
+  off. The readings, the action the exported policy returns, the gait clock and the state after
+  each control step must agree."""
+  from mash import env as env_lib, evaluation, export, policy as policy_lib, sim2sim
+
+  policy = policy_lib.load(smoke_run)
+  eval_cfg = evaluation.EvalConfig(randomization=False, episode_s=1.0, num_episodes=1)
+  # Converged solvers on both sides: at the training's one Newton iteration MJX's and MuJoCo C's
+  # solvers part by ~3e-3 rad in a control step, which would hide a seam's error.
+  env_cfg = evaluation.eval_env_config(policy.config.env, eval_cfg)
+  phys = dataclasses.replace(env_cfg.physics, iterations=20, ls_iterations=20)
+  env = env_lib.MashEnv(dataclasses.replace(env_cfg, physics=phys))
+  act = jax.jit(policy_lib.make_inference_fn(policy, env))
+  step = jax.jit(env.step)
+  state = env.reset(jax.random.PRNGKey(3))
+  for _ in range(10):  # off the home pose
+    state = step(state, act(state.obs))
+  d = state.pipeline_state  # and moving: the PD loop has work to do
+  kick = 0.5 * jax.random.normal(jax.random.PRNGKey(4), d.qvel.shape)
+  state = state.replace(pipeline_state=d.replace(qvel=d.qvel + kick))
+  state = step(state, act(state.obs))  # observations of the kicked state
+
+  onnx_path = export.export_policy(policy, tmp_path / "policy.onnx")
+  dep = sim2sim.Deployment.from_metadata(export.read_metadata(onnx_path))
+  robot = sim2sim.NativeRobot(env.spec, dep, sim2sim.Sim2SimConfig(
+      sim_dt=phys.sim_dt, iterations=phys.iterations, ls_iterations=phys.ls_iterations,
+      integrator=phys.integrator, full_collision=False))
+  controller = sim2sim.Controller(export.onnx_session(onnx_path), dep)
+  d = state.pipeline_state
+  robot.data.qpos[:] = np.asarray(d.qpos, np.float64)
+  robot.data.qvel[:] = np.asarray(d.qvel, np.float64)
+  robot.data.qacc_warmstart[:] = np.asarray(d.qacc_warmstart, np.float64)
+  mujoco.mj_forward(robot.model, robot.data)
+  controller.phase = float(state.info["phase"])
+  controller.last_action = np.asarray(state.info["last_action"], np.float32)
+  command = np.asarray(state.info["command"], np.float64)
+
+  worst = {}
+
+  def close(what, ours, theirs, atol):
+    err = float(np.max(np.abs(np.asarray(ours, np.float64) - np.asarray(theirs, np.float64))))
+    worst[what] = max(worst.get(what, 0.0), err)
+    assert err <= atol, f"step {t}: {what} differs by {err:.3g} (tolerance {atol:g})"
+
+  for t in range(SIM2SIM_STEPS):
+    # float64 against float32: the same state reads the same to ~1e-6, and a converged step
+    # lands within ~1e-6 in angle and ~1e-4 in rate (measured: 2e-7 rad, 2e-5 rad/s). The base
+    # height is compared after steps only: both read it, as MuJoCo's step leaves it, from body
+    # positions of the last substep's start, which the copy (mj_forward) does not have.
+    ours, theirs = robot.sensors(), env.sensors(state.pipeline_state)
+    for key in ("q", "dq", "euler", "ang_vel", "lin_vel", "base_height")[:5 + (t > 0)]:
+      close(key, ours[key], theirs[key], 1e-3 if key in ("dq", "ang_vel", "lin_vel") else 1e-5)
+    action, target = controller.act(ours, command)
+    close("action", action, act(state.obs), 1e-4)  # the exported policy on sim2sim's readings
+    robot.step(target)
+    state = step(state, jnp.asarray(action))
+    close("gait phase", controller.phase, state.info["phase"], 1e-6)
+    close("qpos", robot.data.qpos, state.pipeline_state.qpos, 1e-5)
+    close("qvel", robot.data.qvel, state.pipeline_state.qvel, 1e-3)
+  print("sim2sim against MJX, max |difference|:", {k: f"{v:.2g}" for k, v in worst.items()})
+  assert float(jnp.max(jnp.abs(state.pipeline_state.qvel[6:]))) > 0.3  # the joints did move
