@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 
 from mash import config as train_config
 from mash import env as env_lib
+from mash import loggers
 
 ALGOS = ("mash", "ppo")
 MAX_SEEDS = 1024  # seeds of one run train side by side (vmapped) on one device
@@ -48,6 +49,8 @@ class ExperimentConfig:
       normalizer, rng, iteration, episode statistics: a few MB instead of ~67 MB at 4096 envs,
       rsl_rl's convention); a resume then starts every env on a fresh episode (the curriculum
       clock is set to where it would have been), so the resumed curve is not bit-identical.
+    wandb: also log to Weights & Biases (the ``[wandb]`` extra; :mod:`mash.loggers`).
+    wandb_project: the W&B project of the run.
   """
 
   task: str = "bipedal"
@@ -60,6 +63,8 @@ class ExperimentConfig:
   checkpoint_every: int = 5
   keep_checkpoints: int = 3
   checkpoint_env_state: bool = True
+  wandb: bool = False
+  wandb_project: str = "mash-jax"
 
 
 def _preset_train(preset: str) -> train_config.TrainConfig:
@@ -193,6 +198,13 @@ def check(cfg: ExperimentConfig) -> None:
   for name in ("checkpoint_every", "keep_checkpoints"):
     if getattr(cfg, name) < 1:
       raise ConfigError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+  if cfg.wandb and not loggers.wandb_installed():
+    raise ConfigError('wandb=true needs Weights & Biases, which is not installed here: pip '
+                      'install -e ".[wandb]" (or leave wandb at false)')
+  if not cfg.wandb_project.strip() or len(cfg.wandb_project) > 128 or any(
+      c in cfg.wandb_project for c in '/\\#?%:\n'):
+    raise ConfigError(f"wandb_project must be a W&B project name (1 to 128 characters, none of "
+                      f"/ \\ # ? % :), got {cfg.wandb_project!r}")
   try:
     env_lib.check_config(cfg.env)
   except ValueError as e:

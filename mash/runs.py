@@ -2,7 +2,8 @@
 
 A run directory holds ``config.json`` (the resolved :class:`ExperimentConfig`), ``progress.csv``
 (one row per iteration, mean over seeds; ``progress_seeds.csv`` has one row per seed),
-TensorBoard event files, Orbax ``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
+TensorBoard event files (and a Weights & Biases run with ``wandb``: :mod:`mash.loggers`), Orbax
+``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
 Between jitted calls the host only logs, checkpoints and draws the progress bar. SIGINT/SIGTERM
 end the run after the call in flight, with a complete checkpoint to ``--resume`` from (a second
 signal aborts at once; Orbax's atomic step directories still leave the last complete checkpoint
@@ -43,6 +44,7 @@ import numpy as np
 from mash import checkpoint
 from mash import distributed
 from mash import experiment
+from mash import loggers
 from mash import train as train_lib
 # Shared with deployment code, which loads policies without this module (mash.policy).
 from mash.policy import RunError, read_progress  # noqa: F401
@@ -390,7 +392,6 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
       which stays loadable (``resume`` goes on from it once there is space).
   """
   from tqdm import tqdm
-  from tensorboardX import SummaryWriter
 
   out = Path(out_dir)
   primary = distributed.is_primary()
@@ -438,12 +439,13 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
     _sync("mash.runs.config_written")
   manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
 
-  progress = seed_log = writer = None
+  progress = seed_log = None
+  scalar_loggers = []
   if primary:
     with _writing(f"the logs in '{out}'", out, saved):
       progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
       seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
-      writer = SummaryWriter(str(out / "tensorboard"))
+      scalar_loggers = loggers.make_loggers(cfg, out)
   total_calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
   if max_calls is not None:
     total_calls = min(total_calls, max_calls)
@@ -474,10 +476,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
           for log, new_rows in ((progress, rows), (seed_log, seed_rows)):
             with _writing(f"'{log.path}'", out, saved):
               log.write(new_rows)
-          for r in rows:
-            for k, v in r.items():
-              if k not in ("iteration", "env_steps", "wall_s"):
-                writer.add_scalar(k, v, r["iteration"])
+          for logger in scalar_loggers:
+            logger.log(rows)
         stop, stop_signal = flag["stop"], flag["signal"]
         if multi:  # every process stops after the same call (a signal may reach only some)
           signums = _gather_ints(flag["signum"])
@@ -504,8 +504,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   finally:  # also on an abort (a second signal): Orbax saves are atomic anyway
     bar.close()
     manager.close()
-    if writer is not None:
-      writer.close()
+    for logger in scalar_loggers:
+      logger.close()
   if primary:
     with _writing(f"'{out / 'reward_curve.png'}'", out, saved):
       plot_reward_curve(out)

@@ -410,3 +410,51 @@ def test_a_quiet_start():
   out = subprocess.run([sys.executable, "-c", "import mash.env, mash.runs, mash.evaluation"],
                        capture_output=True, text=True, timeout=120)
   assert out.returncode == 0 and out.stdout == "" and "warp" not in out.stderr, out
+
+
+def test_wandb_logs_every_row_and_resumes_the_same_run(smoke_config, smoke_trainer, tmp_path,
+                                                       monkeypatch):
+  """``wandb=true``: every progress row reaches W&B at its iteration, and a resume continues the
+  same W&B run (its id kept in the run directory). First through a stand-in that records the
+  calls, then through the real library in offline mode, which writes the run's file."""
+  pytest.importorskip("wandb", reason="Weights & Biases is an optional extra: pip install -e "
+                      "'.[wandb]' (the dev extra has it)")
+  import wandb
+  from mash import loggers, runs
+  cfg = dataclasses.replace(smoke_config, wandb=True, checkpoint_every=1)
+  calls = []
+
+  class FakeRun:
+    def log(self, data, step):
+      calls.append(("log", step, dict(data)))
+
+    def finish(self):
+      calls.append(("finish",))
+
+  def fake_init(**kwargs):
+    calls.append(("init", kwargs))
+    return FakeRun()
+
+  with monkeypatch.context() as m:
+    m.setattr(wandb, "init", fake_init)
+    out = tmp_path / "fake"
+    runs.train(cfg, out, show_progress=False, max_calls=1, trainer=smoke_trainer)
+    runs.train(cfg, out, resume=True, show_progress=False, max_calls=1, trainer=smoke_trainer)
+  inits = [c[1] for c in calls if c[0] == "init"]
+  assert len(inits) == 2 and inits[0]["id"] == inits[1]["id"] and inits[1]["resume"] == "allow"
+  assert inits[0]["project"] == "mash-jax" and inits[0]["config"]["train"]["num_envs"] == 64
+  logged = {c[1]: c[2] for c in calls if c[0] == "log"}
+  progress = runs.read_progress(out)
+  assert sorted(logged) == progress["iteration"].tolist() == list(range(1, 11))
+  for i, it in enumerate(progress["iteration"]):
+    assert logged[it]["episode_reward"] == pytest.approx(progress["episode_reward"][i])
+    assert logged[it]["env_steps"] == progress["env_steps"][i]
+  assert sum(c[0] == "finish" for c in calls) == 2
+
+  monkeypatch.setenv("WANDB_MODE", "offline")
+  monkeypatch.setenv("WANDB_SILENT", "true")
+  out = tmp_path / "offline"
+  runs.train(cfg, out, show_progress=False, max_calls=1, trainer=smoke_trainer)
+  run_id = (out / loggers.WANDB_ID_FILE).read_text().strip()
+  files = list((out / "wandb").glob(f"offline-run-*-{run_id}/run-{run_id}.wandb"))
+  assert len(files) == 1 and files[0].stat().st_size > 0, list((out / "wandb").rglob("*"))
