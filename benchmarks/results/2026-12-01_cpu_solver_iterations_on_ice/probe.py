@@ -1,0 +1,28 @@
+"""The shipped policy's falls on slippery floors under other MJX solver settings.
+
+  python benchmarks/results/2026-12-01_cpu_solver_iterations_on_ice/probe.py ITERATIONS LS LO HI N
+
+rolls ``assets/policies/t1_bipedal_mash`` (trained with 1 Newton iteration, 4 line-search
+iterations) for N randomized 20 s episodes at vx 0.4 m/s on floors of friction U[LO, HI], with
+the env's solver set to ITERATIONS / LS, and prints one JSON line.
+"""
+
+import dataclasses
+import json
+import sys
+
+from mash import env as env_lib, evaluation, policy as policy_lib
+
+iterations, ls_iterations, lo, hi, n = (int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]),
+                                        float(sys.argv[4]), int(sys.argv[5]))
+policy = policy_lib.load("assets/policies/t1_bipedal_mash")
+physics = dataclasses.replace(policy.config.env.physics, iterations=iterations,
+                              ls_iterations=ls_iterations)
+eval_cfg = evaluation.EvalConfig(num_episodes=n, friction=(lo, hi))
+env = env_lib.MashEnv(evaluation.eval_env_config(
+    dataclasses.replace(policy.config.env, physics=physics), eval_cfg))
+traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
+alive = traj["alive"].min(axis=1) > 0
+print(json.dumps({"iterations": iterations, "ls_iterations": ls_iterations, "friction": [lo, hi],
+                  "episodes": n, "fall_rate": float(1 - alive.mean()),
+                  "forward_speed_survivors": float(traj["forward_velocity"][alive].mean())}))
