@@ -281,16 +281,14 @@ def sweep_physics(task: str) -> list[dict]:
     physics = robots.PhysicsConfig(sim_dt=sim_dt, iterations=iterations)
     env = env_lib.MashEnv(env_lib.EnvConfig(task=task, physics=physics))
     phys, _ = throughput.bare_physics(env, 256, 10, repeats=1)
-    spec, m = env.spec, env.mj_model
+    lay, m, addr = env.layout, env.mj_model, env.joint_addresses()
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
-    q0 = np.array([spec.default_pose[j] for j in spec.joints])
-    kp = np.array([spec.kp[j] for j in spec.joints])
-    kd = np.array([spec.kd[j] for j in spec.joints])
-    lim = np.array([spec.torque_limit[j] for j in spec.joints])
+    q0, kp, kd, lim = lay.default_pose, lay.kp, lay.kd, lay.torque_limit
     start = d.qpos[:3].copy()
     for _ in range(int(10.0 / sim_dt)):
-      d.ctrl[env._act] = np.clip(kp * (q0 - d.qpos[env._qadr]) - kd * d.qvel[env._dadr], -lim, lim)
+      d.ctrl[addr.actuator] = np.clip(kp * (q0 - d.qpos[addr.qpos]) - kd * d.qvel[addr.dof],
+                                      -lim, lim)
       mujoco.mj_step(m, d)
     rows.append({"sim_dt": sim_dt, "iterations": iterations, "substeps": env.n_substeps,
                  "physics_steps_per_s": phys, "control_steps_per_s": phys / env.n_substeps,

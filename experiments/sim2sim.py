@@ -214,7 +214,7 @@ def main(argv=None) -> None:
         return
       hips = evaluation.hip_pitch_index(env)
       gait = jax.jit(jax.vmap(env.gait))
-      q_default = np.asarray(env._q_default)
+      q_default = np.asarray(env.layout.default_pose, np.float32)
 
       def hip_reference(phase, standing):
         standing = np.asarray(standing, np.float32)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +24,7 @@ from brax.envs import base as brax_base
 from mujoco import mjx
 
 from mash import agents
+from mash import layout as layout_lib
 from mash import randomize
 from mash import rewards
 from mash import robots
@@ -31,8 +32,8 @@ from mash.config import check_number, check_range
 
 State = brax_base.State
 
-TASKS = ("bipedal", "armswing")
-PARTITIONS = ("mash", "ppo", "per_limb")
+TASKS = layout_lib.TASKS
+PARTITIONS = layout_lib.PARTITIONS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,17 +165,6 @@ def quat_rotate_inverse(quat: jax.Array, vec: jax.Array) -> jax.Array:
   """Rotates a world-frame [3] vector into the frame of the [4] (w, x, y, z) quaternion."""
   w, u = quat[0], quat[1:]
   return vec * (2 * w * w - 1) - 2 * w * jnp.cross(u, vec) + 2 * u * jnp.dot(u, vec)
-
-
-def _groups_for(spec: robots.RobotSpec, config: EnvConfig) -> tuple[tuple[str, tuple[robots.Limb, ...]], ...]:
-  """Which limbs act, and how they are grouped into shared-actor agent groups."""
-  kinds = ("legs",) if config.task == "bipedal" else ("legs", "arms")
-  acting = tuple(l for l in spec.limbs if l.group in kinds)
-  if config.partition == "mash":
-    return tuple((k, spec.limbs_of(k)) for k in kinds)
-  if config.partition == "per_limb":
-    return tuple((l.name, (l,)) for l in acting)
-  return (("body", acting),)
 
 
 def check_config(config: EnvConfig, robot_given: bool = False) -> None:
@@ -337,8 +327,40 @@ def contact_rows(data: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array]:
   return dist, impl.contact__geom[con, 0], impl.efc__force
 
 
+def _concat(segments: layout_lib.Segments, values: dict[str, jax.Array]) -> jax.Array:
+  """``[segments.size]``: the ``values`` of the segments' names, in their order (extra values,
+  such as an agent id the config leaves out, are ignored); each must have its segment's size."""
+  parts = []
+  for name, size in segments.parts:
+    part = jnp.reshape(values[name], (-1,))
+    if part.shape != (size,):
+      raise ValueError(f"observation segment '{name}' has {part.shape[0]} entries; the layout "
+                       f"says {size}")
+    parts.append(part)
+  return jnp.concatenate(parts)
+
+
+class JointAddresses(NamedTuple):
+  """Model addresses of the joints, int ``[J]`` each in ``layout.joints`` order.
+
+  Attributes:
+    qpos: index of each joint's angle in ``qpos``. dof: of its velocity in ``qvel``.
+    actuator: of its motor in ``ctrl``.
+  """
+
+  qpos: np.ndarray
+  dof: np.ndarray
+  actuator: np.ndarray
+
+
 class MashEnv(brax_base.Env):
-  """A humanoid whose limbs are agents (see module docstring)."""
+  """A humanoid whose limbs are agents (see module docstring).
+
+  Public attributes: ``config``, ``spec``, ``layout`` (:class:`mash.layout.Layout`: joint tables,
+  controlled joints, agent groups, observation segments), ``agent_groups`` (``layout.groups``),
+  ``n_joints``, ``frame_dims``, ``critic_obs_size``, ``n_substeps``, ``mj_model``, ``mjx_model``;
+  the joints' model addresses come from :meth:`joint_addresses`.
+  """
 
   def __init__(self, config: EnvConfig = EnvConfig(), spec: robots.RobotSpec | None = None):
     check_config(config, robot_given=spec is not None)
@@ -346,6 +368,9 @@ class MashEnv(brax_base.Env):
       spec = robots.ROBOTS[config.robot]
     self.config = config
     self.spec = spec
+    # The joint and observation layout: pure data from the spec and the config (the MjModel below
+    # adds only the addresses).
+    self.layout = layout_lib.build(spec, config)
     self.n_substeps = int(round(config.ctrl_dt / config.physics.sim_dt))
     self.mj_model = robots.build_model(spec, config.physics)
     # This process's first device: MJX's default, jax.devices()[0], belongs to process 0 in a
@@ -354,16 +379,16 @@ class MashEnv(brax_base.Env):
                                               jax.local_devices()[0])
     m = self.mj_model
 
-    # Joint-indexed tables, all in spec.joints order ([J]).
-    joint_ids = [m.joint(j).id for j in spec.joints]
-    self.n_joints = len(spec.joints)
+    lay = self.layout
+    self.n_joints = lay.n_joints
+    joint_ids = [m.joint(j).id for j in lay.joints]
     self._qadr = np.array([m.jnt_qposadr[i] for i in joint_ids])
     self._dadr = np.array([m.jnt_dofadr[i] for i in joint_ids])
-    self._act = np.array([m.actuator(j).id for j in spec.joints])
-    self._q_default = jnp.array([spec.default_pose[j] for j in spec.joints])
-    self._kp = jnp.array([spec.kp[j] for j in spec.joints])
-    self._kd = jnp.array([spec.kd[j] for j in spec.joints])
-    self._tau_max = jnp.array([spec.torque_limit[j] for j in spec.joints])
+    self._act = np.array([m.actuator(j).id for j in lay.joints])
+    self._q_default = jnp.array(lay.default_pose)
+    self._kp = jnp.array(lay.kp)
+    self._kd = jnp.array(lay.kd)
+    self._tau_max = jnp.array(lay.torque_limit)
     self._root = m.body(spec.root_body).id
     self._feet = np.array([m.body(f).id for f in spec.feet])
     n_sole = len(spec.sole_points)
@@ -373,47 +398,14 @@ class MashEnv(brax_base.Env):
                                    for side in ("left", "right") for k in range(n_sole)])
     self._penalty_geoms = np.array([m.geom(f"{a}_penalty").id for a, _ in spec.penalized_pairs])
     self._home_qpos = jnp.array(m.key("home").qpos)
-
-    # Limbs and their phase offsets: legs 0, 0.5; each arm with the opposite leg.
-    self._limb_index = {l.name: i for i, l in enumerate(spec.limbs)}
-    offsets = []
-    for limb in spec.limbs:
-      if limb.group == "arms":
-        offsets.append(0.5 if limb.side > 0 else 0.0)
-      else:
-        offsets.append(0.0 if limb.side > 0 else 0.5)
-    self._phase_offset = jnp.array(offsets)
-    joint_pos = {j: i for i, j in enumerate(spec.joints)}
-    self._limb_joints = {l.name: np.array([joint_pos[j] for j in l.joints]) for l in spec.limbs}
-
-    # Controlled joints (flat action order) and agent groups.
-    self._group_limbs = _groups_for(spec, config)
-    controlled = [joint_pos[j] for _, limbs in self._group_limbs for l in limbs for j in l.joints]
-    self._ctrl = np.array(controlled)
-    groups, cursor = [], 0
-    for name, limbs in self._group_limbs:
-      if name == "body":
-        n_ctrl = sum(len(l.joints) for l in limbs)
-        obs_dim = 3 * n_ctrl + 2 * len(limbs) + 10  # phases of the acting limbs only
-        index = (tuple(range(cursor, cursor + n_ctrl)),)
-        cursor += n_ctrl
-        groups.append(agents.AgentGroup(name, ("body",), obs_dim, n_ctrl, index))
-        continue
-      sizes = {len(l.joints) for l in limbs}
-      if len(sizes) != 1:
-        raise robots.SpecError(f"group '{name}': limbs {[l.name for l in limbs]} have different "
-                               "joint counts and cannot share an actor")
-      n = sizes.pop()
-      obs_dim = 3 * n + 2 + 10 + (len(limbs) if config.agent_id else 0)
-      index = tuple(tuple(range(cursor + k * n, cursor + (k + 1) * n)) for k in range(len(limbs)))
-      cursor += n * len(limbs)
-      groups.append(agents.AgentGroup(name, tuple(l.name for l in limbs), obs_dim, n, index))
+    self._phase_offset = jnp.array(lay.phase_offset)
+    self._ctrl = lay.controlled
+    self.agent_groups: tuple[agents.AgentGroup, ...] = lay.groups
     # One step's observation per agent (``observe``); the agents see actor_history of them.
-    self.frame_dims = {g.name: g.obs_dim for g in groups}
-    groups = [g._replace(obs_dim=g.obs_dim * config.actor_history) for g in groups]
-    self.agent_groups: tuple[agents.AgentGroup, ...] = tuple(groups)
+    self.frame_dims = lay.frame_dims
 
     # q_ref: per joint, which limb's phase drives it and with what multiplier.
+    joint_pos = {j: i for i, j in enumerate(lay.joints)}
     ref_scale = np.zeros(self.n_joints)
     ref_limb = np.zeros(self.n_joints, dtype=int)
     arms_act = config.task == "armswing"
@@ -428,16 +420,11 @@ class MashEnv(brax_base.Env):
     self._ref_scale = jnp.array(ref_scale)
     self._ref_limb = ref_limb
     self._ref_is_leg = jnp.array([spec.limbs[i].group == "legs" for i in ref_limb])
-    self._leg_limbs = np.array([self._limb_index[l.name] for l in spec.limbs if l.group == "legs"])
+    self._leg_limbs = np.array([lay.limb_index[l.name] for l in spec.limbs if l.group == "legs"])
     self._stride_gain = (jnp.asarray(stride_gains(m, spec), jnp.float32)
                          if config.stride_reference else None)
-    if config.critic not in ("global", "local"):
-      raise ValueError(f"critic '{config.critic}' is unknown; expected 'global' or 'local'")
     self._local_dim = max(self.frame_dims.values())
-    if config.critic == "local":
-      self.critic_obs_size = agents.total_agents(self.agent_groups) * self._local_dim
-    else:
-      self.critic_obs_size = 4 * self.n_joints + 2 + 4 + 3 + 3 + 3 + 2 + 3 + 1 + 1 + 2 + 2
+    self.critic_obs_size = lay.critic.size
     self._nominal_mass = float(np.sum(m.body_mass))
 
   # ----------------------------------------------------------------------------------- Brax API
@@ -447,9 +434,7 @@ class MashEnv(brax_base.Env):
 
   @property
   def observation_size(self) -> dict[str, tuple[int, ...]]:
-    sizes = {g.name: (g.n_agents, g.obs_dim) for g in self.agent_groups}
-    sizes["critic"] = (self.critic_obs_size,)
-    return sizes
+    return self.layout.observation_size
 
   @property
   def backend(self) -> str:
@@ -545,12 +530,18 @@ class MashEnv(brax_base.Env):
     penalty = jnp.sum(jnp.where(is_pair & (dist < 0)[:, None], force[:, None], 0.0), 0)
     return foot.astype(jnp.float32), penalty
 
+  def joint_addresses(self) -> JointAddresses:
+    """Where the joints of ``layout.joints`` live in the MjModel (``mj_model``, native MuJoCo or
+    MJX): their ``qpos``, ``qvel`` and ``ctrl`` indices."""
+    return JointAddresses(self._qadr.copy(), self._dadr.copy(), self._act.copy())
+
   def initial_data(self) -> mjx.Data:
     """The MJX state of one env at the home pose, at rest."""
     return self._data0.replace(qpos=self._home_qpos)
 
-  def _full_target(self, action: jax.Array) -> jax.Array:
-    """[J] joint targets: controlled joints from the action, held joints at default."""
+  def joint_targets(self, action: jax.Array) -> jax.Array:
+    """``[J]`` PD targets (rad) from the flat ``action [A]``: controlled joints at
+    ``default + action_scale * clip(action, -action_clip, action_clip)``, held joints at default."""
     scaled = self.config.action_scale * jnp.clip(action, -self.config.action_clip,
                                                  self.config.action_clip)
     return self._q_default.at[self._ctrl].add(scaled)
@@ -606,7 +597,9 @@ class MashEnv(brax_base.Env):
 
   def observe(self, s: dict[str, jax.Array], info: dict[str, Any],
                contact: jax.Array) -> dict[str, jax.Array]:
-    """Agent observations per group and the privileged critic observation."""
+    """Agent observations per group ``{group: [n_agents, frame]}`` and the critic observation
+    ``[critic size]``, each agent row and the critic laid out as ``layout.actor[group]`` and
+    ``layout.critic`` say (one step: :meth:`with_history` stacks the agents' frames)."""
     cfg = self.config
     command = info["command"]
     q_ref, stance = self.gait(info["phase"], command[0], command)
@@ -616,24 +609,26 @@ class MashEnv(brax_base.Env):
       phase_sc = jnp.zeros_like(phase_sc)
     q_rel = s["q"] - self._q_default
     last_full = jnp.zeros((self.n_joints,)).at[self._ctrl].set(info["last_action"])
-    shared = jnp.concatenate([s["euler"], s["ang_vel"], command])
 
     obs = {}
-    for group, (_, limbs) in zip(self.agent_groups, self._group_limbs):
-      if group.name == "body":
-        acting = np.array([self._limb_index[l.name] for l in limbs])
-        obs["body"] = jnp.concatenate([q_rel[self._ctrl], s["dq"][self._ctrl],
-                                       info["last_action"], phase_sc[acting].reshape(-1),
-                                       shared])[None]
+    lay = self.layout
+    for group in self.agent_groups:
+      limbs = lay.group_limbs[group.name]
+      segments = lay.actor[group.name]
+      if group.name == layout_lib.BODY:
+        acting = np.array([lay.limb_index[l] for l in limbs])
+        obs[group.name] = _concat(segments, dict(
+            q=q_rel[self._ctrl], dq=s["dq"][self._ctrl], last_action=info["last_action"],
+            phase=phase_sc[acting].reshape(-1), euler=s["euler"], ang_vel=s["ang_vel"],
+            command=command))[None]
         continue
       rows = []
       for k, limb in enumerate(limbs):
-        idx = self._limb_joints[limb.name]
-        parts = [q_rel[idx], s["dq"][idx], last_full[idx], phase_sc[self._limb_index[limb.name]],
-                 shared]
-        if cfg.agent_id:
-          parts.append(jax.nn.one_hot(k, len(limbs)))
-        rows.append(jnp.concatenate(parts))
+        idx = lay.limb_joints[limb]
+        rows.append(_concat(segments, dict(
+            q=q_rel[idx], dq=s["dq"][idx], last_action=last_full[idx],
+            phase=phase_sc[lay.limb_index[limb]], euler=s["euler"], ang_vel=s["ang_vel"],
+            command=command, agent_id=jax.nn.one_hot(k, len(limbs)))))
       obs[group.name] = jnp.stack(rows)
 
     if cfg.critic == "local":
@@ -644,12 +639,13 @@ class MashEnv(brax_base.Env):
 
     dr = info["dr"]
     base_angle = 2 * jnp.pi * info["phase"]
-    obs["critic"] = jnp.concatenate([
-        q_rel, s["dq"], last_full, q_rel - q_ref,
-        jnp.stack([jnp.sin(base_angle), jnp.cos(base_angle)]), command,
-        s["lin_vel"], s["euler"], s["ang_vel"], info["push"],
-        dr.friction[None], randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
-        stance, contact])
+    obs["critic"] = _concat(lay.critic, dict(
+        q_rel=q_rel, dq=s["dq"], last_action=last_full, q_rel_minus_ref=q_rel - q_ref,
+        phase=jnp.stack([jnp.sin(base_angle), jnp.cos(base_angle)]), command=command,
+        lin_vel=s["lin_vel"], euler=s["euler"], ang_vel=s["ang_vel"], push=info["push"],
+        friction=dr.friction[None],
+        mass_offset=randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
+        stance=stance, contact=contact))
     return obs
 
   def with_history(self, frames: dict[str, jax.Array],
@@ -691,7 +687,7 @@ class MashEnv(brax_base.Env):
     r = cfg.randomization
     delay = (jax.random.uniform(k_delay, minval=r.motor_delay_ms[0], maxval=r.motor_delay_ms[1])
              * 1e-3 / cfg.physics.sim_dt) if r.enabled else jnp.zeros(())
-    target_new = self._full_target(action)
+    target_new = self.joint_targets(action)
     target_old = info["q_target"]
     kp, kd = self._kp * dr.kp_scale, self._kd * dr.kd_scale
 

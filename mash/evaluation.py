@@ -145,6 +145,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   steps = int(round(cfg.episode_s / env.dt))
   hips = hip_pitch_index(env)
   shoulders = shoulder_pitch_index(env)
+  q_default = jnp.asarray(env.layout.default_pose, jnp.float32)
 
   def one_step(carry, t):
     state, value = carry
@@ -160,7 +161,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     conj = s["quat"] * jnp.array([1.0, -1.0, -1.0, -1.0])
     yaw_rate = env_lib.quat_rotate_inverse(conj, qvel[3:6])[2]
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
-               hip_pitch=s["q"][hips], hip_pitch_ref=(env._q_default + q_ref)[hips],
+               hip_pitch=s["q"][hips], hip_pitch_ref=(q_default + q_ref)[hips],
                shoulder_pitch=s["q"][shoulders],
                forward_velocity=s["lin_vel"][0],
                world_velocity=jnp.stack([qvel[0], qvel[1], yaw_rate]),

@@ -42,6 +42,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from mash import agents
+from mash import layout as layout_lib
 from mash import normalization
 from mash import randomize
 
@@ -115,50 +117,68 @@ class Layout(NamedTuple):
   phase_offset: np.ndarray
 
 
+def feature_segments(lay: layout_lib.Layout) -> layout_lib.Segments:
+  """The graph's feature row ``[q - default | dq | last_action | sin | cos | euler | ang_vel |
+  command | 0 | 1]`` (one sin and one cos per limb, ``lay.limbs`` order) as named segments."""
+  J, A, L = lay.n_joints, lay.n_actions, lay.n_limbs
+  seg = layout_lib.Segment
+  return layout_lib.Segments((
+      seg("q", J), seg("dq", J), seg("last_action", A), seg("sin", L), seg("cos", L),
+      seg("euler", 3), seg("ang_vel", 3), seg("command", layout_lib.COMMAND_SIZE), seg("zero", 1),
+      seg("one", 1)))
+
+
 def layout(env) -> Layout:
-  """The gather tables reproducing ``MashEnv.observe`` for every agent group of ``env``."""
-  cfg = env.config
+  """The gather tables reproducing ``MashEnv.observe`` for every agent group of ``env``: each
+  segment of ``env.layout.actor[group]`` read from its columns of the feature row."""
+  cfg, lay = env.config, env.layout
   if cfg.actor_history != 1:
     raise ExportError(f"env.actor_history={cfg.actor_history}: the ONNX graph takes one step's "
                       "signals, and a policy that reads several steps cannot be exported yet")
-  J, A, L = env.n_joints, env.action_size, len(env.spec.limbs)
-  oq, odq, oa = 0, J, 2 * J
-  osin, ocos = 2 * J + A, 2 * J + A + L
-  oshared = 2 * J + A + 2 * L
-  zero, one = oshared + 10, oshared + 11
-  ctrl = [int(i) for i in env._ctrl]
+  features = feature_segments(lay)
+  col = {name: list(range(*span)) for name, span in features.offsets().items()}
+  zero, one = col["zero"][0], col["one"][0]
+  ctrl = [int(i) for i in lay.controlled]
   pos_in_action = {j: k for k, j in enumerate(ctrl)}
-  shared = list(range(oshared, oshared + 10))  # euler 3, ang_vel 3, command 4
 
-  def phase_cols(limb_index: int) -> list[int]:
+  def phase_cols(limb: str) -> list[int]:
     if not cfg.temporal_director:
       return [zero, zero]
-    return [osin + limb_index, ocos + limb_index]
+    i = lay.limb_index[limb]
+    return [col["sin"][i], col["cos"][i]]
+
+  def row(group: agents.AgentGroup, segments: layout_lib.Segments, limbs: tuple[str, ...],
+          joints: list[int], k: int) -> list[int]:
+    """Feature columns of agent ``k``'s observation: ``joints`` its joint positions."""
+    source = {
+        "q": [col["q"][j] for j in joints], "dq": [col["dq"][j] for j in joints],
+        "last_action": ([col["last_action"][pos_in_action[j]] if j in pos_in_action else zero
+                         for j in joints] if group.name != layout_lib.BODY
+                        else col["last_action"]),
+        "phase": [c for l in limbs for c in phase_cols(l)],
+        "euler": col["euler"], "ang_vel": col["ang_vel"], "command": col["command"],
+        "agent_id": [one if m == k else zero for m in range(group.n_agents)]}
+    unknown = [n for n in segments.names if n not in source]
+    if unknown:
+      raise ExportError(f"group '{group.name}': no feature column for observation segment(s) "
+                        f"{unknown}")
+    return [c for name in segments.names for c in source[name]]
 
   obs_index = {}
-  for group, (_, limbs) in zip(env.agent_groups, env._group_limbs):
-    rows = []
-    if group.name == "body":
-      acting = [env._limb_index[l.name] for l in limbs]
-      row = ([oq + j for j in ctrl] + [odq + j for j in ctrl] + [oa + k for k in range(A)]
-             + [c for li in acting for c in phase_cols(li)] + shared)
-      rows.append(row)
+  for group in lay.groups:
+    segments, limbs = lay.actor[group.name], lay.group_limbs[group.name]
+    if group.name == layout_lib.BODY:
+      rows = [row(group, segments, limbs, ctrl, 0)]
     else:
-      for k, limb in enumerate(limbs):
-        idx = [int(i) for i in env._limb_joints[limb.name]]
-        row = ([oq + j for j in idx] + [odq + j for j in idx]
-               + [oa + pos_in_action[j] if j in pos_in_action else zero for j in idx]
-               + phase_cols(env._limb_index[limb.name]) + shared)
-        if cfg.agent_id:
-          row += [one if m == k else zero for m in range(len(limbs))]
-        rows.append(row)
+      rows = [row(group, segments, (limb,), [int(i) for i in lay.limb_joints[limb]], k)
+              for k, limb in enumerate(limbs)]
     table = np.asarray(rows, np.int64)
     if table.shape != (group.n_agents, group.obs_dim):
       raise ExportError(f"group '{group.name}': observation table {table.shape} does not match "
                         f"the env's ({group.n_agents}, {group.obs_dim})")
     obs_index[group.name] = table
-  return Layout(J, A, L, one + 1, zero, one, obs_index,
-                np.asarray(env._phase_offset, np.float32))
+  return Layout(lay.n_joints, lay.n_actions, lay.n_limbs, features.size, zero, one, obs_index,
+                np.asarray(lay.phase_offset, np.float32))
 
 
 def _dense_layers(variables: Mapping[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -200,26 +220,26 @@ class _Graph:
 
 def metadata(parts: PolicyParts) -> dict[str, str]:
   """The ``metadata_props`` of the exported model (all values are strings; lists as JSON)."""
-  env, spec, cfg = parts.env, parts.env.spec, parts.env.config
-  ctrl = [int(i) for i in env._ctrl]
-  joints = list(spec.joints)
+  spec, cfg, lay = parts.env.spec, parts.env.config, parts.env.layout
+  ctrl = [int(i) for i in lay.controlled]
+  joints = list(lay.joints)
   props = {
       "format": "mash-policy/1",
       "robot": spec.name,
       "joint_order": json.dumps(joints),
       "controlled_joints": json.dumps([joints[i] for i in ctrl]),
       "controlled_index": json.dumps(ctrl),
-      "default_pose_rad": json.dumps([float(spec.default_pose[j]) for j in joints]),
-      "kp": json.dumps([float(spec.kp[j]) for j in joints]),
-      "kd": json.dumps([float(spec.kd[j]) for j in joints]),
-      "torque_limit_nm": json.dumps([float(spec.torque_limit[j]) for j in joints]),
+      "default_pose_rad": json.dumps([float(x) for x in lay.default_pose]),
+      "kp": json.dumps([float(x) for x in lay.kp]),
+      "kd": json.dumps([float(x) for x in lay.kd]),
+      "torque_limit_nm": json.dumps([float(x) for x in lay.torque_limit]),
       "action_scale": repr(float(cfg.action_scale)),
       "action_clip": repr(float(cfg.action_clip)),
       "ctrl_dt_s": repr(float(cfg.ctrl_dt)),
       "control_rate_hz": repr(1.0 / float(cfg.ctrl_dt)),
       "gait_cycle_s": repr(float(cfg.gait_cycle_s)),
-      "phase_offsets": json.dumps([float(x) for x in np.asarray(env._phase_offset)]),
-      "limbs": json.dumps([l.name for l in spec.limbs]),
+      "phase_offsets": json.dumps([float(x) for x in lay.phase_offset]),
+      "limbs": json.dumps(list(lay.limbs)),
       "temporal_director": json.dumps(bool(cfg.temporal_director)),
       "agent_id": json.dumps(bool(cfg.agent_id)),
       "partition": cfg.partition,
@@ -251,7 +271,7 @@ def build_model(parts: PolicyParts) -> onnx.ModelProto:
   g = _Graph()
 
   # Feature row [N, width].
-  q_default = np.asarray(env._q_default, np.float32)
+  q_default = np.asarray(env.layout.default_pose, np.float32)
   q_rel = g.op("Sub", ["q", g.const(q_default, "q_default")], "q_rel")
   angle = g.op("Mul", [g.op("Add", ["gait_phase", g.const(lay.phase_offset, "phase_offset")],
                             "limb_phase"), g.const(np.float32(2 * np.pi), "two_pi")], "limb_angle")
@@ -308,7 +328,7 @@ def build_model(parts: PolicyParts) -> onnx.ModelProto:
   clipped = g.op("Clip", ["action", g.const(np.float32(-cfg.action_clip), "action_clip_lo"),
                           g.const(np.float32(cfg.action_clip), "action_clip_hi")], "action_clipped")
   scaled = g.op("Mul", [g.const(np.float32(cfg.action_scale), "action_scale"), clipped], "scaled")
-  g.op("Add", [g.const(q_default[np.asarray(env._ctrl)], "default_ctrl"), scaled], "q_target",
+  g.op("Add", [g.const(q_default[env.layout.controlled], "default_ctrl"), scaled], "q_target",
        out="q_target")
 
   docs = {
@@ -369,9 +389,10 @@ def random_inputs(env, n: int, seed: int = 0) -> dict[str, np.ndarray]:
   rng = np.random.default_rng(seed)
   J, A = env.n_joints, env.action_size
   f32 = lambda x: np.asarray(x, np.float32)
+  q_default = np.asarray(env.layout.default_pose, np.float32)  # float32, as the env holds it
   standing = (rng.uniform(size=n) < 0.2).astype(np.float32)
   return {
-      "q": f32(np.asarray(env._q_default)[None] + rng.normal(0.0, 0.3, (n, J))),
+      "q": f32(q_default[None] + rng.normal(0.0, 0.3, (n, J))),
       "dq": f32(rng.normal(0.0, 2.0, (n, J))),
       "last_action": f32(rng.normal(0.0, 1.0, (n, A))),
       "gait_phase": f32(rng.uniform(0.0, 1.0, (n, 1))),
@@ -397,7 +418,7 @@ def reference_fn(parts: PolicyParts):
                 push=jnp.zeros(5), dr=dr)
     obs = env.observe(sensors, info, jnp.ones(2))
     action = policy(parts.params, parts.normalizer, obs)
-    return action, env._full_target(action)[env._ctrl]
+    return action, env.joint_targets(action)[env.layout.controlled]
 
   batched = jax.jit(jax.vmap(one))
   return lambda inputs: tuple(np.asarray(x) for x in batched(*(jnp.asarray(inputs[k])

@@ -349,7 +349,7 @@ def test_reference_swing_reaches_the_clearance_height(dr_env):
   data = mujoco.MjData(m)
   data.qpos[:] = m.key("home").qpos
   q_ref, _ = dr_env.gait(jnp.asarray(0.25), jnp.asarray(0.0))  # left leg at sin = 1
-  data.qpos[dr_env._qadr] += np.asarray(q_ref)
+  data.qpos[dr_env.joint_addresses().qpos] += np.asarray(q_ref)
   mujoco.mj_kinematics(m, data)
   sole_z = data.geom_xpos[dr_env._soles][..., 2]  # [2 feet, n_sole]
   lift = sole_z[0].min() - sole_z[1].min()
@@ -666,6 +666,6 @@ def test_assemble_action_puts_each_agent_on_its_own_joints(armswing_env):
   assert all(n.startswith("Left_") for n in names[:6] + names[12:16])
   assert all(n.startswith("Right_") for n in names[6:12] + names[16:])
   # The env's joint targets: each value scaled onto the joint it names (default pose + 0.25 a).
-  target = np.asarray(armswing_env._full_target(jnp.asarray(flat) / 1000.0))
+  target = np.asarray(armswing_env.joint_targets(jnp.asarray(flat) / 1000.0))
   default = np.array([T1.default_pose[j] for j in T1.joints])
   np.testing.assert_allclose(target - default, 0.25 * np.asarray(expected) / 1000.0, atol=1e-6)
