@@ -356,8 +356,10 @@ def main(argv=None) -> None:
   with common.user_errors():
     common.check_paths({"--out": args.out, "--dir": args.dir})
     _check_impl(args.impl, args.sweep)
-    if args.task not in ("bipedal", "armswing"):
-      raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
+    from mash import tasks
+    if args.task not in tasks.NAMES:
+      raise common.UserError(f"task '{args.task}' is unknown; expected one of "
+                             f"{', '.join(tasks.NAMES)}")
     if args.batch is not None and not 0 <= args.batch <= MAX_BATCH:
       raise common.UserError(f"--batch must be a number of envs in [1, {MAX_BATCH}] (0: the "
                              f"default), got {args.batch}")

@@ -362,8 +362,10 @@ def main(argv=None) -> None:
                        or args.train_batch > MAX_BATCH):
       raise common.UserError(f'--train-batch must be a multiple of 4 in [4, {MAX_BATCH}], got '
                              f'{args.train_batch}')
-    if args.task not in ('bipedal', 'armswing'):
-      raise common.UserError(f"task '{args.task}' is unknown; expected bipedal or armswing")
+    from mash import tasks
+    if args.task not in tasks.NAMES:
+      raise common.UserError(f"task '{args.task}' is unknown; expected one of "
+                             f"{', '.join(tasks.NAMES)}")
     if args.platform not in PLATFORMS:
       raise common.UserError(f"--platform '{args.platform}' is unknown; expected one of "
                              f"{', '.join(PLATFORMS)}")

@@ -342,8 +342,10 @@ def main(argv=None) -> None:
     from mash import evaluation, experiment
     from experiments.evaluate import evaluate_run
     common.check_paths({"--out": args.out})
-    if args.task not in ("bipedal", "armswing"):
-      raise common.UserError(f"--task '{args.task}' is unknown; expected bipedal or armswing")
+    from mash import tasks
+    if args.task not in tasks.NAMES:
+      raise common.UserError(f"--task '{args.task}' is unknown; expected one of "
+                             f"{', '.join(tasks.NAMES)}")
     if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
       raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
     try:

@@ -36,7 +36,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
                  iteration: int | None = None) -> dict:
   """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``), or
   the policy of a policy folder (:mod:`mash.policy`); returns (and writes) the metrics."""
-  from mash import env as env_lib, evaluation, metrics as metrics_lib, policy as policy_lib
+  from mash import env as env_lib, evaluation, metrics as metrics_lib, policy as policy_lib, tasks
 
   eval_cfg = eval_cfg or evaluation.EvalConfig()
   policies = policy_lib.load_all(run_dir, iteration)
@@ -55,7 +55,7 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
     traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
     curve = progress[curve_key][progress["seed"] == s] if progress else None
     per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve,
-                                        arms_act=cfg.env.task == "armswing"))
+                                        arms_act=tasks.get(cfg.env.task).arms_act))
     traj["seed"] = np.full(traj["alive"].shape[0], s)
     trajs.append(traj)
 

@@ -28,6 +28,7 @@ from mash import layout as layout_lib
 from mash import randomize
 from mash import rewards
 from mash import robots
+from mash import tasks
 from mash.config import check_number, check_range
 
 State = brax_base.State
@@ -179,7 +180,7 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   Raises:
     ValueError: one line naming the bad field, its value and what was expected.
   """
-  for value, allowed, what in ((config.task, TASKS, "task"),
+  for value, allowed, what in ((config.task, tasks.NAMES, "task"),
                                (config.partition, PARTITIONS, "partition"),
                                (config.critic, ("global", "local"), "critic")):
     if value not in allowed:
@@ -408,13 +409,13 @@ class MashEnv(brax_base.Env):
     joint_pos = {j: i for i, j in enumerate(lay.joints)}
     ref_scale = np.zeros(self.n_joints)
     ref_limb = np.zeros(self.n_joints, dtype=int)
-    arms_act = config.task == "armswing"
+    arm_swing = tasks.get(config.task).arm_swing
     for i, limb in enumerate(spec.limbs):
       for j in limb.joints:
         suffix = robots.joint_suffix(j)
         if limb.group == "legs" and suffix in spec.gait_reference:
           ref_scale[joint_pos[j]] = config.swing_amplitude * spec.gait_reference[suffix]
-        elif limb.group == "arms" and arms_act and suffix == spec.arm_swing_joint:
+        elif limb.group == "arms" and arm_swing and suffix == spec.arm_swing_joint:
           ref_scale[joint_pos[j]] = -config.arm_swing_amplitude
         ref_limb[joint_pos[j]] = i
     self._ref_scale = jnp.array(ref_scale)

@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence
 from mash import config as train_config
 from mash import env as env_lib
 from mash import loggers
+from mash import tasks
 
 ALGOS = ("mash", "ppo")
 MAX_SEEDS = 1024  # seeds of one run train side by side (vmapped) on one device
@@ -111,7 +112,12 @@ CPU_TRACKING_SIGMA = 0.1
 
 def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
   partition = "ppo" if algo == "ppo" else "mash"
-  cfg = env_lib.EnvConfig(task=task, partition=partition)
+  spec = tasks.get(task)  # its own command ranges and reward scales, where it has any
+  base = env_lib.EnvConfig()
+  cfg = env_lib.EnvConfig(
+      task=task, partition=partition,
+      commands=dataclasses.replace(base.commands, **spec.commands),
+      reward_scales=dataclasses.replace(base.reward_scales, **spec.reward_scales))
   if preset == "smoke":
     cfg = dataclasses.replace(cfg, episode_length=200)
   ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_CURRICULUM_STEPS}.get(preset, 0)
@@ -173,7 +179,7 @@ def make_config(task: str, algo: str = "mash", preset: str = "cpu", seeds: int =
 
 
 def _check_choices(task: str, algo: str, preset: str, ablation: str, seeds: int) -> None:
-  for value, allowed, what in ((task, env_lib.TASKS, "task"), (algo, ALGOS, "algo"),
+  for value, allowed, what in ((task, tasks.NAMES, "task"), (algo, ALGOS, "algo"),
                                (preset, PRESETS, "preset"), (ablation, ABLATIONS, "ablation")):
     if value not in allowed:
       raise ConfigError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")

@@ -23,11 +23,12 @@ import numpy as np
 
 from mash import agents
 from mash import robots
+from mash import tasks
 
 if TYPE_CHECKING:
   from mash.env import EnvConfig
 
-TASKS = ("bipedal", "armswing")
+TASKS = tasks.NAMES
 PARTITIONS = ("mash", "ppo", "per_limb")
 CRITICS = ("global", "local")
 COMMAND_SIZE = 4  # standing flag (0/1), vx (m/s), vy (m/s), yaw rate (rad/s)
@@ -179,7 +180,7 @@ def acting_groups(spec: robots.RobotSpec,
                   config: EnvConfig) -> tuple[tuple[str, tuple[robots.Limb, ...]], ...]:
   """Which limbs act, and how they are grouped into shared-actor agent groups:
   ``((group name, its limbs), ...)``."""
-  kinds = ("legs",) if config.task == "bipedal" else ("legs", "arms")
+  kinds = tasks.get(config.task).acting
   acting = tuple(l for l in spec.limbs if l.group in kinds)
   if config.partition == "mash":
     return tuple((k, spec.limbs_of(k)) for k in kinds)
@@ -231,7 +232,7 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
     robots.SpecError: the limbs of one group have different joint counts (one actor cannot
       serve them).
   """
-  for value, allowed, what in ((config.task, TASKS, "task"),
+  for value, allowed, what in ((config.task, tasks.NAMES, "task"),
                                (config.partition, PARTITIONS, "partition"),
                                (config.critic, CRITICS, "critic")):
     if value not in allowed:
