@@ -30,7 +30,8 @@ def test_play_headless_writes_the_video(tmp_path):
   from experiments.sim2sim import headless_gl
   backend, reason = headless_gl()
   if backend is None:  # a system library, as for sim2sim's video test: the reason says which
-    pytest.skip(f"no headless OpenGL to render with: {reason} (a system library, not a Python package: on Debian "apt install libegl1 libgl1-mesa-dri" or "libosmesa6")")
+    pytest.skip(f"no headless OpenGL to render with: {reason} (a system library, not a Python "
+                "package: on Debian, apt install libegl1 libgl1-mesa-dri, or libosmesa6)")
   video = tmp_path / "walk.mp4"
   out = subprocess.run([sys.executable, "-m", "experiments.play", "--policy", "t1_bipedal_mash",
                         "--seconds", "2", "--video", str(video)], capture_output=True, text=True,

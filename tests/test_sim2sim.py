@@ -92,7 +92,8 @@ def test_sim2sim_video(run_copy, tmp_path):
   assert r.returncode == 0, r.stderr[-2000:]
   skipped = [l for l in r.stdout.splitlines() if l.startswith("video skipped: ")]
   if skipped:  # no EGL/OSMesa system library here: the line says which to install
-    pytest.skip(f"no headless OpenGL to render with: {skipped[0]} (a system library, not a Python package: on Debian "apt install libegl1 libgl1-mesa-dri" or "libosmesa6")")
+    pytest.skip(f"no headless OpenGL to render with: {skipped[0]} (a system library, not a Python "
+                "package: on Debian, apt install libegl1 libgl1-mesa-dri, or libosmesa6)")
   import imageio.v2 as imageio
   frames = [f for f in imageio.get_reader(str(video))]
   assert len(frames) >= 5  # the start + one frame every 2 control steps of 15
