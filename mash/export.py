@@ -25,6 +25,13 @@ id from the constant columns), the running-statistics normalization, each group'
 MLP (``MatMul``/``Add``/``Elu``) applied to all agents of the group at once, and the scatter of
 per-agent actions into flat order. Joint order, units, control rate, default pose, PD gains and
 action scale are in the model's ``metadata_props`` (:func:`read_metadata`).
+
+Why by hand, not traced from the JAX policy (tried with jax 0.10.2, issue 25): jax2onnx >= 0.13.1
+requires orbax-checkpoint < 0.11.37, against our >= 0.12; 0.13.0, which pip picks instead, fails on
+jax 0.10 (``batching.not_mapped``); and 0.17.1 without its pins cannot batch Flax ``Dense`` (the
+per-agent actors) and writes a ``OneHot`` of a scalar (the agent id) that onnxruntime rejects.
+What keeps this graph from drifting is :func:`verify`: it compares the file with the env's own
+``observe`` and the trained actors, to 1e-5.
 """
 
 from __future__ import annotations

@@ -79,6 +79,29 @@ def test_onnx_matches_jax(case, tmp_path):
   assert np.abs(action).max() > 0.1
 
 
+def test_check_sees_a_drifted_weight(tmp_path):
+  # The file against a reference whose output bias of one leg joint is 1e-4 higher: the mean of
+  # that joint moves by 1e-4 in both leg agents (shared actor), its target by 0.25 * 1e-4, so the
+  # check must report those, ten and 2.5 times its tolerance, not the export's usual 1e-6.
+  run = random_run("bipedal")
+  path = export.export_policy(run, tmp_path / "policy.onnx")
+  target = ("actors", "legs", "params", "MLP_0", "Dense_2", "bias")  # actor_hidden (32, 16)
+  hits = []
+
+  def drift(keys, x):
+    if tuple(k.key for k in keys) != target:
+      return x
+    hits.append(keys)
+    return x + np.float32(1e-4) * (np.arange(x.shape[-1]) == 0)  # entry 0 only
+
+  drifted = run._replace(params=jax.tree_util.tree_map_with_path(drift, run.params))
+  assert len(hits) == 1
+  diff = export.verify(path, drifted, n=256)
+  assert abs(diff["action"] - 1e-4) < 5e-6, diff
+  assert abs(diff["q_target"] - 2.5e-5) < 2e-6, diff
+  assert max(diff["action"], diff["q_target"]) > TOL
+
+
 def test_unnormalized_run_matches_jax(tmp_path):
   run = random_run("armswing")._replace(normalizer=None)
   path = export.export_policy(run, tmp_path / "policy.onnx")
