@@ -334,6 +334,9 @@ def main(argv=None) -> None:
   p.add_argument("--learning-rates", default="1e-3,3e-4", metavar="LR,LR",
                  help="the search both methods get: seed 0 at each rate, the same rule picks "
                       "each method's (default 1e-3,3e-4)")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="a shipped robot (booster_t1, unitree_g1) or a robot file (default: "
+                      "booster_t1; the same as --set env.robot=...)")
   p.add_argument("--no-progress", action="store_true")
   args = p.parse_args(argv)
   with common.user_errors():
@@ -361,6 +364,8 @@ def main(argv=None) -> None:
     if not learning_rates or not all(0 < lr < 1 for lr in learning_rates):
       raise common.UserError(f"--learning-rates '{args.learning_rates}': expected rates in (0, 1) "
                              "separated by commas, e.g. 1e-3,3e-4")
+    if args.robot is not None:  # before the --set overrides, so that those still win
+      args.set = [f"env.robot={args.robot}", *args.set]
     preset = args.preset or common.default_preset()[0]
     cfgs = {algo: experiment.make_config(args.task, algo, preset, 1, "none", args.set)
             for algo in ("mash", "ppo")}

@@ -33,13 +33,13 @@ from experiments import common
 
 
 def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
-                 iteration: int | None = None) -> dict:
+                 iteration: int | None = None, robot: str | None = None) -> dict:
   """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``), or
   the policy of a policy folder (:mod:`mash.policy`); returns (and writes) the metrics."""
   from mash import env as env_lib, evaluation, metrics as metrics_lib, policy as policy_lib, tasks
 
   eval_cfg = eval_cfg or evaluation.EvalConfig()
-  policies = policy_lib.load_all(run_dir, iteration)
+  policies = policy_lib.load_all(run_dir, iteration, robot)
   cfg = policies[0].config
   env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, eval_cfg))
 
@@ -91,14 +91,14 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
 
 
 def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
-                 write: bool = True) -> dict:
+                 write: bool = True, robot: str | None = None) -> dict:
   """Rolls every seed of a run's policy over the command grid (``evaluation.TRACKING_GRID``,
   ``eval_cfg.num_episodes`` episodes per command) and returns (and writes) ``tracking.json``'s
   content: the episodes of all seeds together, and ``per_seed`` when the run has several (a
   policy folder: its one policy)."""
   from mash import env as env_lib, evaluation, policy as policy_lib
 
-  policies = policy_lib.load_all(run_dir, iteration)
+  policies = policy_lib.load_all(run_dir, iteration, robot)
   cfg = policies[0].config
   seeds = len(policies)
   commands = evaluation.tracking_commands(eval_cfg.num_episodes)
@@ -266,6 +266,9 @@ def main(argv=None) -> None:
                       "the evaluation's fixed seed; another one appends _seed<S> to the output "
                       "directory, e.g. to confirm on fresh episodes a checkpoint picked among "
                       "several)")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="the robot file to use instead of the run's env.robot (the same robot, "
+                      "e.g. a user's file that has moved)")
   p.add_argument("--tracking", action="store_true",
                  help="command tracking instead: every command of the grid (standing; vx -0.3 to "
                       "0.8; vy +-0.2; yaw rate +-0.5), --episodes per command (default 64), "
@@ -314,7 +317,7 @@ def main(argv=None) -> None:
       n = len(evaluation.TRACKING_GRID)
       print(f"tracking {args.run}{which}: {n} commands x {args.episodes} episodes x "
             f"{args.seconds:g} s, DR {dr}", flush=True)
-      result = tracking_run(args.run, cfg, iteration=args.iteration)
+      result = tracking_run(args.run, cfg, iteration=args.iteration, robot=args.robot)
       for g in result["grid"]:
         c = g["command"]
         print(f"  command {'standing' if c[0] else 'walking '} vx {c[1]:+.2f} vy {c[2]:+.2f} "
@@ -330,7 +333,7 @@ def main(argv=None) -> None:
       return
     print(f"evaluating {args.run}{which}: {args.episodes} episodes x {args.seconds:g} s at vx = "
           f"{args.command_vx} m/s, DR {dr}", flush=True)
-    result = evaluate_run(args.run, cfg, iteration=args.iteration)
+    result = evaluate_run(args.run, cfg, iteration=args.iteration, robot=args.robot)
     shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
                                     "fall_rate", "forward_speed", "command_vx")}
     print(json.dumps(shown, indent=2))

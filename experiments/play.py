@@ -96,6 +96,8 @@ def main(argv=None) -> None:
                  help="write an MP4 (or an animated GIF: OUT.gif, 400x300 at 12.5 fps) instead of "
                       "opening the viewer (the default without a display: <policy name>.mp4)")
   p.add_argument("--phase", type=float, default=0.0, help="initial gait phase in [0, 1)")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="the robot file to play on (default: the shipped robot the policy names)")
   args = p.parse_args(argv)
   if not 0.0 <= args.phase < 1.0:
     p.error(f"--phase {args.phase}: expected a gait phase in [0, 1)")
@@ -129,10 +131,14 @@ def main(argv=None) -> None:
     from mash import export, robots, sim2sim
     meta = export.read_metadata(onnx_path)
     robot_name = meta.get("robot")
-    if robot_name not in robots.ROBOTS:
+    if args.robot is None and robot_name not in robots.names():
       raise common.UserError(f"'{onnx_path}' was exported for robot '{robot_name}', which this "
-                             f"version does not know (known: {', '.join(robots.ROBOTS)})")
-    spec = robots.ROBOTS[robot_name]
+                             f"version does not ship (shipped: {', '.join(robots.names())}); "
+                             "pass its robot file with --robot FILE.toml")
+    spec = robots.load(args.robot or robot_name)
+    if spec.name != robot_name:
+      raise common.UserError(f"--robot {args.robot} is robot '{spec.name}', but '{onnx_path}' was "
+                             f"exported for robot '{robot_name}'")
     vx, vy, yaw = args.command
     cfg = sim2sim.Sim2SimConfig(command_vx=vx, num_episodes=1, episode_s=args.seconds)
     try:

@@ -68,7 +68,8 @@ def latest_step(run_dir: Path) -> int | None:
   return max(steps) if steps else None
 
 
-def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> Path:
+def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say,
+                 robot: str | None = None) -> Path:
   """The ONNX policy to run: ``--onnx``, an up-to-date ``DIR/policy.onnx``, or a fresh export
   (``DIR``: a run directory or a policy folder)."""
   from mash import export, policy as policy_lib
@@ -91,7 +92,7 @@ def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> Path:
     if (meta.get("checkpoint_iteration"), meta.get("seed")) == current:
       say(f"reusing {path} (checkpoint iteration {meta['checkpoint_iteration']})")
       return path
-  policy = policy_lib.load(run_dir, seed=seed)
+  policy = policy_lib.load(run_dir, seed=seed, robot=robot)
   try:
     export.export_policy(policy, path)
   except export.ExportError as e:
@@ -100,8 +101,8 @@ def resolve_onnx(run_dir: Path, onnx_arg: str | None, seed: int, say) -> Path:
   return path
 
 
-def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, dr: bool, say
-                ) -> tuple[dict | None, str]:
+def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, dr: bool, say,
+                robot: str | None = None) -> tuple[dict | None, str]:
   """The MJX side of the table: ``DIR/eval/metrics.json`` or a short ``evaluate_run`` (with domain
   randomization only when ``dr``: off, it runs the same nominal robot as the MuJoCo C side)."""
   from experiments.evaluate import evaluate_run
@@ -119,7 +120,7 @@ def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float,
   say(f"MJX evaluation: {episodes} episodes x {seconds:g} s (compiling the MJX rollout takes "
       "about a minute on CPU; --no-mjx skips it)")
   t0 = time.perf_counter()
-  metrics = evaluate_run(str(run_dir), cfg, write=False)
+  metrics = evaluate_run(str(run_dir), cfg, write=False, robot=robot)
   say(f"MJX evaluation done in {time.perf_counter() - t0:.0f} s")
   return sim2sim.mjx_row(metrics), (f"experiments.evaluate.evaluate_run, {episodes} episodes x "
                                     f"{seconds:g} s, DR {'on' if dr else 'off'} (computed here; "
@@ -149,6 +150,9 @@ def main(argv=None) -> None:
   p.add_argument("--viewer", action="store_true",
                  help="interactive mujoco viewer (needs a display); arrows change vx / yaw rate")
   p.add_argument("--no-mjx", action="store_true", help="skip the MJX side of the comparison")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="the robot file to use instead of the run's env.robot (the same robot, "
+                      "e.g. a user's file that has moved)")
   p.add_argument("--mjx-episodes", type=int, default=4,
                  help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing")
   p.add_argument("--mjx-dr", action="store_true",
@@ -191,7 +195,7 @@ def main(argv=None) -> None:
     import numpy as np
 
     run_dir = Path(args.run)
-    config = policy_lib.load_config(run_dir)
+    config = policy_lib.load_config(run_dir, args.robot)
     common.check_writable_dir(run_dir / "sim2sim", "the run directory")
     if args.video is not None:
       common.check_writable_file(args.video, "--video")
@@ -204,7 +208,7 @@ def main(argv=None) -> None:
                               {"num_episodes": "--mjx-episodes"})
     except ValueError as e:
       raise common.UserError(str(e)) from None
-    onnx_path = resolve_onnx(run_dir, args.onnx, args.seed, say)
+    onnx_path = resolve_onnx(run_dir, args.onnx, args.seed, say, args.robot)
     env = env_lib.MashEnv(config.env)
     try:
       if args.viewer:
@@ -238,7 +242,7 @@ def main(argv=None) -> None:
     mujoco_row = sim2sim.summarize(traj, cfg.command_vx)
 
     mjx, source = (None, "skipped (--no-mjx)") if args.no_mjx else mjx_metrics(
-        run_dir, args.mjx_episodes, args.seconds, args.command_vx, args.mjx_dr, say)
+        run_dir, args.mjx_episodes, args.seconds, args.command_vx, args.mjx_dr, say, args.robot)
     meta = export.read_metadata(onnx_path)
     alive = traj["alive"]
     report = {

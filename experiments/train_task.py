@@ -5,6 +5,7 @@ Examples:
   python -m experiments.bipedal --algo ppo --seeds 3 --preset smoke --out runs/ppo_smoke
   python -m experiments.armswing --set train.learning_rate=5e-4 --set env.action_scale=0.3
   python -m experiments.bipedal --resume runs/bipedal_mash_cpu_20261125-120000
+  python -m experiments.bipedal --robot unitree_g1 --preset smoke   # or --robot my_robot.toml
 
 Devices: one process trains on every device it sees (several GPUs: the env batch is split over
 them). On a CPU with 2 or more cores, a one-seed run above the smoke preset trains as two local
@@ -90,6 +91,9 @@ def main(task: str, argv: list[str] | None = None) -> None:
   p.add_argument("--out", default=None, help="run directory (default: runs/<task>_<algo>_<preset>_<time>)")
   p.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
   p.add_argument("--ablation", default="none", help="one of mash.experiment.ABLATIONS")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="a shipped robot (booster_t1, unitree_g1) or a robot file (default: "
+                      "booster_t1; the same as --set env.robot=...)")
   p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                  help="override a config field, e.g. train.learning_rate=1e-3 (repeatable)")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -102,10 +106,13 @@ def main(task: str, argv: list[str] | None = None) -> None:
       given = [name for name, value, default in (
           ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
           ("--ablation", args.ablation, "none"), ("--set", args.set, []),
+          ("--robot", args.robot, None),
           ("--out", args.out, None)) if value != default]
       if given and not (given == ["--out"] and str(args.out) == str(args.resume)):
         raise common.UserError(f"--resume continues a run with its own config; {', '.join(given)} "
                                "cannot be combined with it")
+    if args.robot is not None:  # before the --set overrides, so that those still win
+      args.set = [f"env.robot={args.robot}", *args.set]
     if "MASH_LOCAL_PROCESSES" not in os.environ:  # not already one of the supervised processes
       n = _local_processes(task, args)
       if n > 1:

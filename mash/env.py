@@ -62,7 +62,8 @@ class EnvConfig:
     task: 'bipedal' (legs act, arms held by PD at the default pose) or 'armswing' (all limbs act).
     partition: 'mash' (one group per limb kind: legs share one actor, arms another), 'ppo' (one
       agent controls the whole body: the single-agent baseline), 'per_limb' (each limb its own group).
-    robot: key of ``robots.ROBOTS``.
+    robot: a shipped robot's name (``robots.names()``: the files of ``assets/robots/``) or the
+      path of a robot file (``.toml``).
     ctrl_dt: control period (s); 50 Hz.
     physics: MJX solver settings.
     episode_length: control steps before time-out (20 s).
@@ -70,11 +71,12 @@ class EnvConfig:
     action_clip: |action| bound before scaling.
     gait_cycle_s: period of the temporal director (1/k in the paper's eq.).
     swing_amplitude: leg reference amplitude (rad, times the robot's gait_reference multipliers).
-      The paper gives none; 0.25 makes the reference knee swing 0.5 rad, the range of the paper's
-      hardware knee plot (1.2 to 1.7 rad). On the T1 it lifts the swing sole 3.8 cm at its peak
-      (kinematics; humanoid-gym's 0.17 lifts it 2.2 cm and, played open loop, keeps the foot on
-      the ground 94 % of the time). ``RewardParams.feet_height_target`` matches it.
-    arm_swing_amplitude: shoulder reference amplitude (rad), armswing only.
+      None (default): the robot's (``RobotSpec.swing_amplitude``). The paper gives none; the
+      T1's 0.25 makes the reference knee swing 0.5 rad, the range of the paper's hardware knee
+      plot (1.2 to 1.7 rad), and lifts the swing sole 3.8 cm at its peak (kinematics;
+      humanoid-gym's 0.17 lifts it 2.2 cm and, played open loop, keeps the foot on the ground
+      94 % of the time). ``RewardParams.feet_height_target`` matches it.
+    arm_swing_amplitude: shoulder reference amplitude (rad), armswing only; None: the robot's.
     stride_reference: (ours; off by default, the reference bends the swing leg only, whatever the
       command) add to the legs' reference the stride the commanded velocity needs: each foot
       sweeps from ahead at touchdown to behind at lift-off by ``v * gait_cycle_s / 2`` (hip
@@ -91,7 +93,7 @@ class EnvConfig:
       newest first (``[n_agents, H * frame]``; at reset the first frame repeated), so the shared
       actor can read its velocity and the floor's grip from how its joints moved, as
       humanoid-gym's stacked frames do. The critic is unchanged.
-    fall_height: torso height (m) under which the episode ends as a fall.
+    fall_height: root-body height (m) under which the episode ends as a fall; None: the robot's.
     fall_tilt: |roll| or |pitch| (rad) above which the episode ends as a fall.
     commands, randomization, reward_scales, reward_params: see their classes.
     auto_reset: reset finished episodes inside ``step``.
@@ -108,14 +110,14 @@ class EnvConfig:
   action_scale: float = 0.25
   action_clip: float = 10.0
   gait_cycle_s: float = 0.64
-  swing_amplitude: float = 0.25
-  arm_swing_amplitude: float = 0.3
+  swing_amplitude: float | None = None
+  arm_swing_amplitude: float | None = None
   stride_reference: bool = False
   agent_id: bool = True
   critic: str = "global"
   temporal_director: bool = True
   actor_history: int = 1
-  fall_height: float = 0.4
+  fall_height: float | None = None
   fall_tilt: float = 1.0
   commands: CommandConfig = CommandConfig()
   randomization: randomize.DomainRandConfig = randomize.DomainRandConfig()
@@ -185,11 +187,14 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
                                (config.critic, ("global", "local"), "critic")):
     if value not in allowed:
       raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
-  if not robot_given and config.robot not in robots.ROBOTS:
-    raise ValueError(f"robot '{config.robot}' is unknown; expected one of "
-                     f"{', '.join(robots.ROBOTS)}")
+  if not robot_given:  # the whole robot file, read and checked (cheap: no model is built)
+    try:
+      robots.load(config.robot)
+    except robots.SpecError as e:
+      raise ValueError(str(e)) from None
   for name, low, high, unit, open_low in ENV_BOUNDS:
-    check_number(name, getattr(config, name), low, high, unit, open_low)
+    if getattr(config, name) is not None:  # None: the robot's (with_robot_numbers)
+      check_number(name, getattr(config, name), low, high, unit, open_low)
   if config.actor_history < 1:
     raise ValueError(f"actor_history must be >= 1 (control steps), got {config.actor_history}")
   check_number("actor_history", config.actor_history, 1, MAX_ACTOR_HISTORY, "control steps")
@@ -212,6 +217,22 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
                      f"{MAX_SUBSTEPS}")
 
 
+def with_robot_numbers(config: EnvConfig, spec: robots.RobotSpec) -> EnvConfig:
+  """``config`` with each robot-dependent number it leaves at None taken from the robot's spec:
+  the fall height, the legs' and arms' swing amplitudes, the clearance target and the push
+  ranges. A number the config sets (a preset, ``--set``, an older run's config.json) stays."""
+  pick = lambda value, robot_value: robot_value if value is None else value
+  r, p = config.randomization, config.reward_params
+  return dataclasses.replace(
+      config, fall_height=pick(config.fall_height, spec.fall_height),
+      swing_amplitude=pick(config.swing_amplitude, spec.swing_amplitude),
+      arm_swing_amplitude=pick(config.arm_swing_amplitude, spec.arm_swing_amplitude),
+      randomization=dataclasses.replace(r, push_force=pick(r.push_force, spec.push_force),
+                                        push_torque=pick(r.push_torque, spec.push_torque)),
+      reward_params=dataclasses.replace(
+          p, feet_height_target=pick(p.feet_height_target, spec.feet_height_target)))
+
+
 def check_commands(commands: CommandConfig) -> None:
   """Checks a :class:`CommandConfig`: each velocity range within +-10 (m/s, rad/s) with lo <= hi,
   a probability in [0, 1], a resampling period in (0, 1e5] s.
@@ -225,13 +246,16 @@ def check_commands(commands: CommandConfig) -> None:
   check_number("resample_s", commands.resample_s, 0.0, MAX_RESAMPLE_S, "s", open_low=True)
 
 
+STRIDE_ROLES = ("hip_pitch", "hip_roll", "hip_yaw", "ankle_pitch", "ankle_roll")
+
+
 def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-3) -> np.ndarray:
   """[J, 3] joint offset per unit foot displacement x, y (m) and foot yaw (rad), torso frame, at
   the default pose: each leg's hip pitch, roll and yaw from finite differences of its foot's
   position and yaw, and its ankle pitch and roll so that the sole keeps its tilt.
 
   Raises:
-    robots.SpecError: a leg lacks one of those joints.
+    robots.SpecError: a leg lacks a joint of one of those roles (``STRIDE_ROLES``).
   """
   data = mujoco.MjData(model)
   home = model.key("home").qpos.copy()
@@ -253,22 +277,19 @@ def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-
   for limb in spec.limbs:
     if limb.group != "legs":
       continue
-    by_role = {robots.joint_suffix(j): j for j in limb.joints}
-    missing = [r for r in ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Ankle_Pitch", "Ankle_Roll")
-               if r not in by_role]
+    missing = [r for r in STRIDE_ROLES if r not in limb.roles]
     if missing:
-      raise robots.SpecError(f"robot '{spec.name}': leg '{limb.name}' has no {missing[0]} joint "
-                             "for the stride reference")
+      raise robots.SpecError(f"robot '{spec.name}': leg '{limb.name}' has no joint with role "
+                             f"'{missing[0]}', which the stride reference needs")
     base = foot_pose(limb, {})
-    d = {r: (foot_pose(limb, {by_role[r]: eps}) - base) / eps
-         for r in ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Ankle_Pitch", "Ankle_Roll")}
+    d = {r: (foot_pose(limb, {limb.joint(r): eps}) - base) / eps for r in STRIDE_ROLES}
     # axis 0 (x) -> hip pitch, 1 (y) -> hip roll, 2 (yaw) -> hip yaw; ankles undo the sole's tilt.
-    for axis, hip, ankle, tilt in ((0, "Hip_Pitch", "Ankle_Pitch", 3),
-                                   (1, "Hip_Roll", "Ankle_Roll", 4)):
+    for axis, hip, ankle, tilt in ((0, "hip_pitch", "ankle_pitch", 3),
+                                   (1, "hip_roll", "ankle_roll", 4)):
       g = 1.0 / d[hip][axis]
-      gain[joint_pos[by_role[hip]], axis] = g
-      gain[joint_pos[by_role[ankle]], axis] = -g * d[hip][tilt] / d[ankle][tilt]
-    gain[joint_pos[by_role["Hip_Yaw"]], 2] = 1.0 / d["Hip_Yaw"][2]
+      gain[joint_pos[limb.joint(hip)], axis] = g
+      gain[joint_pos[limb.joint(ankle)], axis] = -g * d[hip][tilt] / d[ankle][tilt]
+    gain[joint_pos[limb.joint("hip_yaw")], 2] = 1.0 / d["hip_yaw"][2]
   return gain
 
 
@@ -366,7 +387,8 @@ class MashEnv(brax_base.Env):
   def __init__(self, config: EnvConfig = EnvConfig(), spec: robots.RobotSpec | None = None):
     check_config(config, robot_given=spec is not None)
     if spec is None:
-      spec = robots.ROBOTS[config.robot]
+      spec = robots.load(config.robot)
+    config = with_robot_numbers(config, spec)
     self.config = config
     self.spec = spec
     # The joint and observation layout: pure data from the spec and the config (the MjModel below
@@ -411,11 +433,10 @@ class MashEnv(brax_base.Env):
     ref_limb = np.zeros(self.n_joints, dtype=int)
     arm_swing = tasks.get(config.task).arm_swing
     for i, limb in enumerate(spec.limbs):
-      for j in limb.joints:
-        suffix = robots.joint_suffix(j)
-        if limb.group == "legs" and suffix in spec.gait_reference:
-          ref_scale[joint_pos[j]] = config.swing_amplitude * spec.gait_reference[suffix]
-        elif limb.group == "arms" and arm_swing and suffix == spec.arm_swing_joint:
+      for j, role in zip(limb.joints, limb.roles):
+        if limb.group == "legs" and role in spec.gait_reference:
+          ref_scale[joint_pos[j]] = config.swing_amplitude * spec.gait_reference[role]
+        elif limb.group == "arms" and arm_swing and role == spec.arm_swing_role:
           ref_scale[joint_pos[j]] = -config.arm_swing_amplitude
         ref_limb[joint_pos[j]] = i
     self._ref_scale = jnp.array(ref_scale)
@@ -427,6 +448,11 @@ class MashEnv(brax_base.Env):
     self._local_dim = max(self.frame_dims.values())
     self.critic_obs_size = lay.critic.size
     self._nominal_mass = float(np.sum(m.body_mass))
+    # The robot's joint model (its file's numbers or the MJCF's), which DR off keeps.
+    self._joint_nominal = randomize.JointNominal(
+        damping=np.asarray(m.dof_damping[self._dadr], np.float32),
+        friction=np.asarray(m.dof_frictionloss[self._dadr], np.float32),
+        armature=np.asarray(m.dof_armature[self._dadr], np.float32))
 
   # ----------------------------------------------------------------------------------- Brax API
   @property
@@ -558,7 +584,7 @@ class MashEnv(brax_base.Env):
     env_steps = jnp.asarray(env_steps, jnp.int32)
     k_dr, k_cmd, k_push, k_phase, rng = jax.random.split(rng, 5)
     dr = randomize.sample(k_dr, self.config.randomization, self.mj_model.nbody, self.n_joints,
-                          env_steps)
+                          env_steps, self._joint_nominal)
     data = self.initial_data()
     if command is None:
       command = self._sample_command(k_cmd)

@@ -17,7 +17,6 @@ import numpy as np
 from mash import env as env_lib
 from mash import metrics as metrics_lib
 from mash import randomize
-from mash import robots
 from mash.config import MAX_INT32, check_number, check_range
 
 
@@ -101,17 +100,15 @@ def eval_env_config(env_config: env_lib.EnvConfig, cfg: EvalConfig) -> env_lib.E
 
 
 def hip_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
-  """[2] positions of the left and right hip-pitch joints in ``env.spec.joints``."""
-  names = [next(j for j in limb.joints if j.endswith("Hip_Pitch"))
-           for limb in env.spec.limbs if limb.group == "legs"]
-  return np.array([env.spec.joints.index(n) for n in names])
+  """[2] positions of the left and right hip-pitch joints (role ``hip_pitch``) in
+  ``env.spec.joints``."""
+  return np.array([env.spec.joints.index(n) for n in env.spec.role_joints("hip_pitch", "legs")])
 
 
 def shoulder_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
-  """[2] positions of the left and right arm-swing joints (``spec.arm_swing_joint``, the
+  """[2] positions of the left and right arm-swing joints (role ``spec.arm_swing_role``, the
   shoulder pitch) in ``env.spec.joints``."""
-  names = [next(j for j in limb.joints if robots.joint_suffix(j) == env.spec.arm_swing_joint)
-           for limb in env.spec.limbs if limb.group == "arms"]
+  names = env.spec.role_joints(env.spec.arm_swing_role, "arms")
   return np.array([env.spec.joints.index(n) for n in names])
 
 

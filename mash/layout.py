@@ -6,7 +6,7 @@ the agent groups, and every observation as an ordered tuple of named segments.
 ``env.layout``; the ONNX export, the evaluation and the experiments read these tables instead of
 the env's internals. Sizes are computed from the segments, never summed by hand::
 
-  lay = layout.build(robots.BOOSTER_T1, EnvConfig(task="armswing"))
+  lay = layout.build(robots.load("booster_t1"), EnvConfig(task="armswing"))
   lay.actor["legs"].slice("q")        # slice(0, 6): a leg's joint angles minus the default pose
   lay.actor["arms"].size              # 26: one control step of one arm agent
   lay.critic.offset("command")        # 82

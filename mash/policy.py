@@ -27,6 +27,7 @@ the policy. Nothing here imports training code (:mod:`mash.train`, :mod:`mash.ru
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -42,6 +43,7 @@ from mash import env as env_lib
 from mash import experiment
 from mash import networks
 from mash import normalization
+from mash import robots
 
 FORMAT = "mash-policy-folder/1"
 CONFIG = "config.json"
@@ -81,9 +83,28 @@ def is_policy_folder(path: str | os.PathLike) -> bool:
   return (Path(path) / INFO).is_file()
 
 
-def load_config(path: str | os.PathLike) -> experiment.ExperimentConfig:
-  """The config of a run directory or a policy folder; RunError when ``path`` is neither."""
-  path = Path(path)
+def load_config(path: str | os.PathLike, robot: str | None = None) -> experiment.ExperimentConfig:
+  """The config of a run directory or a policy folder; RunError when ``path`` is neither.
+
+  ``robot``: a robot file (or shipped name) to use instead of the run's ``env.robot``, e.g. a
+  user's robot file that has moved since training; it must be the robot the run names (the same
+  ``name``) when the run's own is still readable.
+  """
+  cfg = _read_config(Path(path))
+  if robot is None:
+    return cfg
+  spec = robots.load(robot)
+  try:
+    trained = robots.load(cfg.env.robot).name
+  except robots.SpecError:  # the run's file is gone: the given one stands in for it
+    trained = spec.name
+  if spec.name != trained:
+    raise RunError(f"--robot {robot} is robot '{spec.name}', but '{path}' was trained on "
+                   f"'{trained}'")
+  return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, robot=robot))
+
+
+def _read_config(path: Path) -> experiment.ExperimentConfig:
   if not path.exists():
     raise RunError(f"run directory '{path}' does not exist")
   if not path.is_dir():
@@ -96,7 +117,8 @@ def load_config(path: str | os.PathLike) -> experiment.ExperimentConfig:
     raise RunError(f"'{path}/config.json': {e}") from None
 
 
-def load(path: str | os.PathLike, iteration: int | None = None, seed: int = 0) -> Policy:
+def load(path: str | os.PathLike, iteration: int | None = None, seed: int = 0,
+         robot: str | None = None) -> Policy:
   """The policy of a run directory or a policy folder (see the module docstring).
 
   Args:
@@ -104,13 +126,14 @@ def load(path: str | os.PathLike, iteration: int | None = None, seed: int = 0) -
     iteration: the checkpoint saved at this iteration instead of the newest that restores (a
       policy folder holds one: asking for another is an error).
     seed: which seed of a multi-seed run (a policy folder holds one: 0).
+    robot: the robot file to use instead of the run's (:func:`load_config`).
 
   Raises:
     RunError: one line naming the path: neither a run nor a policy folder, no checkpoint that
       restores, no checkpoint of ``iteration``, ``seed`` out of range, unreadable files.
   """
   path = Path(path)
-  cfg = load_config(path)
+  cfg = load_config(path, robot)
   if is_policy_folder(path):
     policy = _load_folder(path, cfg)
     if iteration is not None and iteration != policy.iteration:
@@ -126,13 +149,14 @@ def load(path: str | os.PathLike, iteration: int | None = None, seed: int = 0) -
   return _load_run(path, cfg, iteration, (seed,))[0]
 
 
-def load_all(path: str | os.PathLike, iteration: int | None = None) -> tuple[Policy, ...]:
+def load_all(path: str | os.PathLike, iteration: int | None = None,
+             robot: str | None = None) -> tuple[Policy, ...]:
   """Every seed's policy of a run (its checkpoint read once), or a policy folder's one; see
   :func:`load`."""
   path = Path(path)
-  cfg = load_config(path)
+  cfg = load_config(path, robot)
   if is_policy_folder(path):
-    return (load(path, iteration),)
+    return (load(path, iteration, robot=robot),)
   return _load_run(path, cfg, iteration, tuple(range(cfg.seeds)))
 
 

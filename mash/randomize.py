@@ -10,6 +10,7 @@ MJX model each env steps is the shared model with those fields replaced (``apply
 from __future__ import annotations
 
 import dataclasses
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -30,8 +31,10 @@ class DomainRandConfig:
     com_offset: torso centre-of-mass offset per axis (m).
     motor_delay_ms: actuation delay, redrawn every control step (ms).
     push_force: horizontal force on the torso per axis (N), redrawn every ``push_interval_s``.
+      None (default): the robot's (``RobotSpec.push_force``: the paper's +-20 N on the T1, scaled
+      to another robot's mass); the env fills it in.
     push_torque: torque on the torso per axis (N m); the paper's critic sees a push torque but its
-      table gives no range: ours.
+      table gives no range: the robot file's (+-5 N m on the T1, ours). None: the robot's.
     push_interval_s: how long one push is held (s); 0 (default) draws a new push every control
       step, as the paper randomizes "external perturbations" "at each simulation step" (SPEC §6:
       per step). Runs before 2026-11-26 held each push 1 s (``push_interval_s=1.0``), a far harder
@@ -69,8 +72,8 @@ class DomainRandConfig:
   mass_scale: tuple[float, float] = (0.9, 1.13)
   com_offset: tuple[float, float] = (-0.03, 0.03)
   motor_delay_ms: tuple[float, float] = (0.0, 3.0)
-  push_force: tuple[float, float] = (-20.0, 20.0)
-  push_torque: tuple[float, float] = (-5.0, 5.0)
+  push_force: tuple[float, float] | None = None
+  push_torque: tuple[float, float] | None = None
   push_interval_s: float = 0.0
   gravity: tuple[float, float] = (9.78, 9.83)
   joint_damping: tuple[float, float] = (0.0, 0.05)
@@ -115,7 +118,8 @@ def check_config(config: DomainRandConfig) -> None:
     ValueError: one line naming the field, its value and what was expected.
   """
   for name, low, high, unit, open_low in RANGE_BOUNDS:
-    check_range(name, getattr(config, name), low, high, unit, open_low)
+    if getattr(config, name) is not None:  # the pushes' None: the robot's, checked with it
+      check_range(name, getattr(config, name), low, high, unit, open_low)
   if config.friction_initial is not None:
     check_range("friction_initial", config.friction_initial, 0.0, 10.0, open_low=True)
   check_number("push_interval_s", config.push_interval_s, 0.0, MAX_INTERVAL_S, "s")
@@ -155,14 +159,25 @@ class DomainParams:
   kd_scale: jax.Array
 
 
+class JointNominal(NamedTuple):
+  """The un-randomized joint model of the actuated joints: damping, friction and armature, each a
+  number for every joint or ``[n_joints]`` (the robot's, ``MashEnv`` reads them from its model)."""
+
+  damping: Any = 0.0
+  friction: Any = 0.0
+  armature: Any = 0.01
+
+
 def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
-            nominal_armature: float = 0.01) -> DomainParams:
+            joints: JointNominal = JointNominal()) -> DomainParams:
   """The un-randomized robot (DR off)."""
   ones = jnp.ones((n_joints,))
   return DomainParams(
       friction=jnp.asarray(nominal_friction), mass_scale=jnp.ones((nbody,)),
-      com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81), joint_damping=0.0 * ones,
-      joint_friction=0.0 * ones, armature=nominal_armature * ones, kp_scale=ones, kd_scale=ones)
+      com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81),
+      joint_damping=jnp.asarray(joints.damping, jnp.float32) * ones,
+      joint_friction=jnp.asarray(joints.friction, jnp.float32) * ones,
+      armature=jnp.asarray(joints.armature, jnp.float32) * ones, kp_scale=ones, kd_scale=ones)
 
 
 def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
@@ -178,15 +193,18 @@ def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
 
 
 def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
-           env_steps: jax.Array | None = None) -> DomainParams:
+           env_steps: jax.Array | None = None,
+           joints: JointNominal = JointNominal()) -> DomainParams:
   """Draws one environment's parameters (nominal when ``config.enabled`` is False).
 
   ``env_steps`` ([] int, control steps of this env slot since training began) places the floor
   friction's draw on its curriculum (:func:`friction_range`); None: the final range. With
   ``config.slippery_share`` > 0 that share of the draws comes from ``slippery_friction``.
+  ``joints``: the robot's nominal joint model, used when randomization is off (on, the paper's
+  absolute ranges replace it, for every robot).
   """
   if not config.enabled:
-    return nominal(nbody, n_joints)
+    return nominal(nbody, n_joints, joints=joints)
   k = jax.random.split(key, 9)
   u = lambda key, r, shape=(): jax.random.uniform(key, shape, minval=r[0], maxval=r[1])
   friction = u(k[0], friction_range(config, env_steps))

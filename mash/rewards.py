@@ -48,10 +48,11 @@ class RewardParams:
     tracking_sigma: sigma_t of linear velocity tracking (m^2/s^2).
     yaw_sigma: sigma_yaw of yaw-rate tracking (rad^2/s^2).
     air_time_alpha: alpha of feet air time (1/m), on the stride error.
-    feet_height_target: h_target of feet clearance (m above the floor). The paper gives none; the
-      peak swing height of the temporal director's reference on the T1 (3.8 cm at
-      ``EnvConfig.swing_amplitude`` 0.25), so following the reference earns the term. The
-      8 cm used before was out of the reference's reach.
+    feet_height_target: h_target of feet clearance (m above the floor). The paper gives none.
+      None (default): the robot's (``RobotSpec.feet_height_target``), the peak swing height of
+      the temporal director's reference (on the T1 3.8 cm at its swing amplitude 0.25), so
+      following the reference earns the term; the env fills it in. The 8 cm used before was out
+      of the reference's reach.
     feet_height_tolerance: delta of feet clearance (m).
     orientation_k_euler: k of exp(-k |roll, pitch|) (1/rad).
     orientation_k_gravity: k of exp(-k |g_proj,xy|).
@@ -79,7 +80,7 @@ class RewardParams:
   tracking_sigma: float = 0.25
   yaw_sigma: float = 0.25
   air_time_alpha: float = 5.0
-  feet_height_target: float = 0.04
+  feet_height_target: float | None = None
   feet_height_tolerance: float = 0.02
   orientation_k_euler: float = 10.0
   orientation_k_gravity: float = 20.0
@@ -284,7 +285,8 @@ def check_params(params: RewardParams) -> None:
     raise ValueError("tracking_boost must be >= 1 (1 = no curriculum), got "
                      f"{params.tracking_boost}")
   for name, low, high, unit, open_low in PARAM_BOUNDS:
-    check_number(name, getattr(params, name), low, high, unit, open_low)
+    if getattr(params, name) is not None:  # feet_height_target's None: the robot's
+      check_number(name, getattr(params, name), low, high, unit, open_low)
 
 
 def penalty_ramp(env_steps: jax.Array | None, params: RewardParams) -> jax.Array:

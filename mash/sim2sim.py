@@ -352,10 +352,9 @@ def run_episode(robot: NativeRobot, controller: Controller, command: np.ndarray,
 
 
 def hip_pitch_index(dep: Deployment, spec: robots.RobotSpec) -> np.ndarray:
-  """[2] positions of the left and right hip-pitch joints in the policy's joint order."""
-  names = [next(j for j in limb.joints if j.endswith("Hip_Pitch"))
-           for limb in spec.limbs if limb.group == "legs"]
-  return np.array([dep.joints.index(n) for n in names])
+  """[2] positions of the left and right hip-pitch joints (role ``hip_pitch``) in the policy's
+  joint order."""
+  return np.array([dep.joints.index(n) for n in spec.role_joints("hip_pitch", "legs")])
 
 
 class SimResult(NamedTuple):

@@ -112,7 +112,7 @@ def cached_models():
 
   @functools.lru_cache(maxsize=None)
   def build(name: str, physics: robots.PhysicsConfig, full_collision: bool):
-    return real(robots.ROBOTS[name], physics, full_collision)
+    return real(robots.load(name), physics, full_collision)
 
   with pytest.MonkeyPatch.context() as mp:
     mp.setattr(robots, "build_model", lambda spec, physics=robots.PhysicsConfig(),
@@ -207,7 +207,7 @@ def test_every_evaluation_number_is_refused_in_one_line_or_starts(smoke_env):
 
 def test_every_sim2sim_number_is_refused_in_one_line_or_starts(cached_models):
   def start(settings):  # the MuJoCo C model sim2sim steps
-    robots.build_model(robots.ROBOTS[SMOKE.env.robot], sim2sim.physics(settings),
+    robots.build_model(robots.load(SMOKE.env.robot), sim2sim.physics(settings),
                        full_collision=settings.full_collision)
 
   accepted = _walk_settings(SIM2SIM_FIELDS, sim2sim.Sim2SimConfig(), sim2sim.check_config, start)

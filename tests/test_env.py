@@ -24,7 +24,7 @@ from mash import randomize
 from mash import rewards
 from mash import robots
 
-T1 = robots.BOOSTER_T1
+T1 = robots.load("booster_t1")
 DR_OFF = randomize.DomainRandConfig(enabled=False)
 EPISODE_LENGTH = 50   # control steps of the DR-on env (1 s), so a 200-step rollout sees time-outs
 RANDOM_STEPS = 200    # random-action rollout (DR on)
@@ -123,10 +123,12 @@ def _mirror(values, names):
   """Sagittal mirror of a joint-indexed vector: swap left/right partners, apply mirror_sign."""
   pos = {n: i for i, n in enumerate(names)}
   out = np.empty_like(values)
+  partner = {}
+  for group in ("legs", "arms"):
+    left, right = T1.limbs_of(group)
+    partner.update({**dict(zip(left.joints, right.joints)), **dict(zip(right.joints, left.joints))})
   for i, n in enumerate(names):
-    suffix = robots.joint_suffix(n)
-    partner = ("Right_" if n.startswith("Left_") else "Left_") + suffix
-    out[i] = T1.mirror_sign[suffix] * values[pos[partner]]
+    out[i] = T1.mirror_sign[T1.role_of(n)] * values[pos[partner[n]]]
   return out
 
 
@@ -312,7 +314,7 @@ def test_left_right_mirror_symmetry(armswing_env, standing):
   shared_sign = np.array([-1, 1, -1, -1, 1, -1, 1, 1, -1, -1.0])  # euler, angvel, command
   for group in ("legs", "arms"):
     left_limb = T1.limbs_of(group)[0]
-    m = np.array([T1.mirror_sign[robots.joint_suffix(j)] for j in left_limb.joints])
+    m = np.array([T1.mirror_sign[r] for r in left_limb.roles])
     sign = np.concatenate([m, m, m, [1.0, 1.0], shared_sign])
     for a, b in ((0, 1), (1, 0)):
       np.testing.assert_allclose(obs_m[group][a][:-2], sign * obs[group][b][:-2], atol=1e-5,

@@ -21,7 +21,7 @@ from mash import env as env_lib
 from mash import layout
 from mash import robots
 
-T1 = robots.BOOSTER_T1
+T1 = robots.load("booster_t1")
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = list(itertools.product(env_lib.TASKS, env_lib.PARTITIONS, (True, False), (True, False)))
 

@@ -155,11 +155,12 @@ def test_mjx_trainer_survives_nan_and_inf_states(smoke_trainer):
 def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
   """robots.build_model names the joint; the CLI wrapper prints it as one line, exit 2."""
   from experiments import common
-  t1 = robots.BOOSTER_T1
+  t1 = robots.load("booster_t1")
   leg = t1.limbs[0]
   typo = dataclasses.replace(leg, joints=(leg.joints[0] + "_typo",) + leg.joints[1:])
   bad = dataclasses.replace(t1, limbs=(typo,) + t1.limbs[1:])
-  with pytest.raises(robots.SpecError, match=f"joint '{leg.joints[0]}_typo' is not in the model"):
+  with pytest.raises(robots.SpecError, match=rf"joint '{leg.joints[0]}_typo' \(limb 'left_leg', "
+                     r"role 'hip_pitch'\) is not in the model"):
     robots.build_model(bad)
   with pytest.raises(SystemExit) as e, common.user_errors():
     robots.build_model(bad)

@@ -16,7 +16,7 @@ from mash import layout
 from mash import robots
 from mash import tasks
 
-T1 = robots.ROBOTS["booster_t1"]
+T1 = robots.load("booster_t1")
 
 
 @pytest.fixture
