@@ -15,7 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mash import experiment, rewards, runs
+from mash import env as env_lib, experiment, rewards, robots, runs
+
+
+def _with_robot_numbers(cfg: experiment.ExperimentConfig) -> experiment.ExperimentConfig:
+  """``cfg`` with the numbers it leaves to its robot filled in, as the env sees it (a recorded
+  config.json from before the robot files holds them explicitly)."""
+  return dataclasses.replace(cfg, env=env_lib.with_robot_numbers(cfg.env,
+                                                                  robots.load(cfg.env.robot)))
 
 
 def test_smoke_run_writes_every_file(smoke_run):
@@ -83,7 +90,7 @@ def test_gpu_preset_is_the_measured_walking_run():
       "2026-11-26_h100_gpu_bipedal_mash_penalty_ramp16k" / "config.json"
   measured = experiment.from_json(recorded.read_text())
   assert measured.env.randomization.push_interval_s == 1.0
-  preset = experiment.make_config("bipedal", "mash", "gpu")
+  preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "gpu"))
   per_step_pushes = dataclasses.replace(measured.env.randomization, push_interval_s=0.0)
   assert dataclasses.replace(measured, checkpoint_env_state=True, env=dataclasses.replace(
       measured.env, randomization=per_step_pushes)) == preset
@@ -99,7 +106,7 @@ def test_cpu_preset_is_the_measured_walking_run():
       "2026-12-01_cpu_bipedal_mash_stride_sigma01" / "config.json"
   measured = experiment.from_json(recorded.read_text())
   assert json.loads(recorded.read_text())["env"]["randomization"]["torque_noise"] == 0.02
-  preset = experiment.make_config("bipedal", "mash", "cpu")
+  preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "cpu"))
   assert preset.env.stride_reference and preset.env.actor_history == 1
   assert preset.env.reward_params.tracking_sigma == 0.1 and preset.env.reward_params.yaw_sigma == 0.25
   assert dataclasses.replace(measured, keep_checkpoints=preset.keep_checkpoints) == preset

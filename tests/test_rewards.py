@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from mash import rewards
+from mash import robots
 
-P = rewards.RewardParams()
+# The T1's clearance target (a RewardParams default of None means the robot's; the env fills it).
+P = rewards.RewardParams(feet_height_target=robots.load("booster_t1").feet_height_target)
 DT = 0.02
 PAPER_TERMS = ("joint_pos", "tracking_lin_vel", "tracking_ang_vel", "dof_torques", "dof_vel",
                "dof_acc", "feet_air_time", "feet_clearance", "feet_contact_number", "orientation",
@@ -211,8 +213,8 @@ def test_total_reward_only_positive_clip():
   """total_reward sums the terms; only_positive clips a negative sum to 0 and leaves positives."""
   negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}   # sum -0.6
   positive = {"a": jnp.float32(-0.1), "b": jnp.float32(0.4)}   # sum 0.3
-  clip = rewards.RewardParams(only_positive=True)
-  raw = rewards.RewardParams(only_positive=False)
+  clip = dataclasses.replace(P, only_positive=True)
+  raw = dataclasses.replace(P, only_positive=False)
   assert float(rewards.total_reward(negative, clip)) == 0.0
   assert float(rewards.total_reward(negative, raw)) == pytest.approx(-0.6)
   assert float(rewards.total_reward(positive, clip)) == pytest.approx(0.3)
