@@ -157,16 +157,18 @@ def train_breakdown(env, train_cfg, calls: int = 2) -> dict:
           "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
 
 
-def _env_config(task: str, impl: str, batch: int, **fields):
-  """The benchmarked env's config: physics through ``impl``, Warp's contacts sized for ``batch``."""
+def _env_config(task: str, impl: str, batch: int, robot: str = "booster_t1", **fields):
+  """The benchmarked env's config: ``robot``, physics through ``impl``, Warp's contacts sized for
+  ``batch``."""
   from mash import env as env_lib
   from mash import robots
   physics = robots.PhysicsConfig(impl=impl, warp_max_envs=batch)
-  return env_lib.EnvConfig(task=task, physics=physics, **fields)
+  return env_lib.EnvConfig(task=task, robot=robot, physics=physics, **fields)
 
 
 def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None,
-                  stages: tuple[str, ...] = STAGES, impl: str = "jax") -> dict:
+                  stages: tuple[str, ...] = STAGES, impl: str = "jax",
+                  robot: str = "booster_t1") -> dict:
   """The figures of ``stages`` (default: all) at one batch, the physics run by MJX's ``impl``
   ('jax' or 'warp'). With ``out``, the JSON is rewritten after every stage (``complete`` false
   until the last), so a run stopped early keeps what it measured."""
@@ -177,9 +179,9 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
   batch = batch or (256 if quick else 1024)
   unroll = 24
   iters = 2 if quick else 4
-  env_cfg = _env_config(task, impl, batch)
+  env_cfg = _env_config(task, impl, batch, robot)
   env = env_lib.MashEnv(env_cfg)
-  result = {"device": _device_kind(), "backend": jax.default_backend(),
+  result = {"device": _device_kind(), "backend": jax.default_backend(), "robot": env.spec.name,
             "n_devices": jax.device_count(), "impl": impl, "batch": batch,
             "substeps": env.n_substeps, "task": task, "quick": quick,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "stages": list(stages),
@@ -241,7 +243,7 @@ def _ratios(result: dict) -> dict:
 
 
 def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
-                impl: str = "jax") -> list[dict]:
+                impl: str = "jax", robot: str = "booster_t1") -> list[dict]:
   """Physics, env and MASH training throughput per batch size (one process), through MJX's
   ``impl``.
 
@@ -249,7 +251,7 @@ def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
   from mash import config as train_config
   from mash import env as env_lib
   from mash import throughput
-  env = env_lib.MashEnv(_env_config(task, impl, max(batches)))
+  env = env_lib.MashEnv(_env_config(task, impl, max(batches), robot))
   rows = []
   for b in batches:
     print(f"batch {b}", file=sys.stderr, flush=True)
@@ -266,7 +268,7 @@ def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
   return rows
 
 
-def sweep_physics(task: str) -> list[dict]:
+def sweep_physics(task: str, robot: str = "booster_t1") -> list[dict]:
   """Each solver setting: MJX physics steps/s (batch 256) and standing drift over 10 s (MuJoCo C,
   same model and options, PD at the default pose, zero action)."""
   import mujoco
@@ -279,7 +281,7 @@ def sweep_physics(task: str) -> list[dict]:
   for sim_dt, iterations in settings:
     print(f"sim_dt {sim_dt}, iterations {iterations}", file=sys.stderr, flush=True)
     physics = robots.PhysicsConfig(sim_dt=sim_dt, iterations=iterations)
-    env = env_lib.MashEnv(env_lib.EnvConfig(task=task, physics=physics))
+    env = env_lib.MashEnv(env_lib.EnvConfig(task=task, robot=robot, physics=physics))
     phys, _ = throughput.bare_physics(env, 256, 10, repeats=1)
     lay, m, addr = env.layout, env.mj_model, env.joint_addresses()
     d = mujoco.MjData(m)
@@ -350,13 +352,19 @@ def main(argv=None) -> None:
   p.add_argument("--stages", default=",".join(STAGES),
                  help=f"comma-separated subset of {','.join(STAGES)} (default: all)")
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
+  p.add_argument("--robot", default="booster_t1", metavar="NAME|FILE.toml",
+                 help="a shipped robot (booster_t1, unitree_g1) or a robot file")
   p.add_argument("--impl", default="jax",
                  help="MJX implementation of the physics: jax (default) or warp (MuJoCo Warp)")
   args = p.parse_args(argv)
   with common.user_errors():
     common.check_paths({"--out": args.out, "--dir": args.dir})
     _check_impl(args.impl, args.sweep)
-    from mash import tasks
+    from mash import env as env_lib, tasks
+    try:
+      env_lib.check_config(env_lib.EnvConfig(robot=args.robot))
+    except ValueError as e:
+      raise common.UserError(f"--robot: {e}") from None
     if args.task not in tasks.NAMES:
       raise common.UserError(f"task '{args.task}' is unknown; expected one of "
                              f"{', '.join(tasks.NAMES)}")
@@ -376,11 +384,12 @@ def main(argv=None) -> None:
       if not batches or not all(1 <= b <= MAX_BATCH for b in batches):
         raise common.UserError(f"--batches '{args.batches}': expected comma-separated numbers of "
                                f"envs in [1, {MAX_BATCH}], e.g. 64,256,1024")
-      rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch", args.impl)
+      rows = sweep_batch(batches, args.task, Path(args.dir) / "scaling_batch", args.impl,
+                         args.robot)
       print(json.dumps(rows, indent=2))
       return
     if args.sweep == "physics":
-      rows = sweep_physics(args.task)
+      rows = sweep_physics(args.task, args.robot)
       _write_table(rows, Path(args.dir) / "physics_settings", "sim_dt")
       print(json.dumps(rows, indent=2))
       return
@@ -395,7 +404,8 @@ def main(argv=None) -> None:
                 "date": time.strftime("%Y-%m-%d %H:%M:%S")}
       for partition in ("mash", "ppo"):
         print(f"breakdown: {partition}", file=sys.stderr, flush=True)
-        env = env_lib.MashEnv(_env_config(args.task, args.impl, batch, partition=partition))
+        env = env_lib.MashEnv(_env_config(args.task, args.impl, batch, args.robot,
+                                          partition=partition))
         result[partition] = train_breakdown(env, cfg)
       result["updates_alone_mash_vs_ppo"] = (result["mash"]["updates_alone_s"]
                                              / result["ppo"]["updates_alone_s"])
@@ -410,7 +420,7 @@ def main(argv=None) -> None:
       raise common.UserError(f"--stages '{args.stages}': expected a comma-separated subset of "
                              f"{','.join(STAGES)}")
     result = run_benchmark(args.quick, args.batch, args.task, Path(args.out or "benchmark.json"),
-                           stages, args.impl)
+                           stages, args.impl, args.robot)
     print(json.dumps(result))
 
 

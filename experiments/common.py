@@ -7,6 +7,7 @@ import contextlib
 import os
 import sys
 import time
+from pathlib import Path
 from typing import Iterator
 
 
@@ -123,7 +124,6 @@ def check_writable_dir(path: str | os.PathLike, flag: str) -> None:
   Raises:
     UserError: one line naming ``flag``, the path and the reason.
   """
-  from pathlib import Path
   reason = _unwritable(Path(path))
   if reason:
     raise UserError(f"{flag} '{path}' cannot be written: {reason}")
@@ -136,7 +136,6 @@ def check_writable_file(path: str | os.PathLike, flag: str) -> None:
   Raises:
     UserError: one line naming ``flag``, the path and the reason.
   """
-  from pathlib import Path
   file = Path(path)
   if file.is_dir():
     raise UserError(f"{flag} '{file}' is a folder; expected a file path")
@@ -159,6 +158,15 @@ class Parser(argparse.ArgumentParser):
   def error(self, message: str):  # noqa: D401 - argparse API
     print(f"error: {one_line(message)} (see --help)", file=sys.stderr, flush=True)
     sys.exit(2)
+
+
+def robot_arg(robot: str) -> str:
+  """``--robot``: a shipped robot's name as given, a robot file as its absolute path (so that the
+  run's config.json names it from any working directory)."""
+  from mash import robots
+  if robot in robots.names():
+    return robot
+  return str(Path(robot).expanduser().resolve()) if Path(robot).expanduser().is_file() else robot
 
 
 def default_preset() -> tuple[str, str]:

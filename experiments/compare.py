@@ -365,7 +365,7 @@ def main(argv=None) -> None:
       raise common.UserError(f"--learning-rates '{args.learning_rates}': expected rates in (0, 1) "
                              "separated by commas, e.g. 1e-3,3e-4")
     if args.robot is not None:  # before the --set overrides, so that those still win
-      args.set = [f"env.robot={args.robot}", *args.set]
+      args.set = [f"env.robot={common.robot_arg(args.robot)}", *args.set]
     preset = args.preset or common.default_preset()[0]
     cfgs = {algo: experiment.make_config(args.task, algo, preset, 1, "none", args.set)
             for algo in ("mash", "ppo")}

@@ -20,6 +20,9 @@ def main(argv=None) -> None:
   p.add_argument("--seed", type=int, default=0, help="which seed of a multi-seed run")
   p.add_argument("--check", type=int, default=256, help="random observations in the check (0: skip)")
   p.add_argument("--tolerance", type=float, default=1e-5, help="max |onnx - jax| allowed")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
+                 help="the robot file to use instead of the run's env.robot (the same robot, "
+                      "e.g. a user's file that has moved)")
   args = p.parse_args(argv)
   with common.user_errors():
     from mash import export, policy as policy_lib
@@ -29,9 +32,9 @@ def main(argv=None) -> None:
     out = Path(args.out) if args.out else Path(args.run) / "policy.onnx"
     if out.is_dir():
       raise common.UserError(f"--out '{out}' is a directory; expected a file path like policy.onnx")
-    policy_lib.load_config(args.run)  # a missing run is named before the output path
+    policy_lib.load_config(args.run, args.robot)  # a missing run is named before the output path
     common.check_writable_file(out, "--out")
-    policy = policy_lib.load(args.run, seed=args.seed)
+    policy = policy_lib.load(args.run, seed=args.seed, robot=args.robot)
     try:
       parts = export.policy_parts(policy)
       path = export.export_policy(parts, out)

@@ -112,7 +112,7 @@ def main(task: str, argv: list[str] | None = None) -> None:
         raise common.UserError(f"--resume continues a run with its own config; {', '.join(given)} "
                                "cannot be combined with it")
     if args.robot is not None:  # before the --set overrides, so that those still win
-      args.set = [f"env.robot={args.robot}", *args.set]
+      args.set = [f"env.robot={common.robot_arg(args.robot)}", *args.set]
     if "MASH_LOCAL_PROCESSES" not in os.environ:  # not already one of the supervised processes
       n = _local_processes(task, args)
       if n > 1:

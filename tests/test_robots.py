@@ -194,3 +194,20 @@ def test_g1_arm_swing_env_steps_under_mjx_with_its_file_alone():
   done, height, reward = jax.jit(run)(jax.random.PRNGKey(0))
   assert not bool(done.any()) and np.all(np.isfinite(np.asarray(reward)))
   assert abs(float(height[-1]) - robots.load("unitree_g1").base_height_target) < 0.02, height[-1]
+
+
+def test_robot_flag_stores_a_file_absolute_and_deployment_checks_the_name(tmp_path, monkeypatch):
+  """``--robot my.toml`` (relative) is stored as an absolute path, so evaluate/export/sim2sim
+  find it from anywhere; their ``--robot`` must be the robot the run was trained on."""
+  from experiments import common
+  from mash import policy
+  (tmp_path / "my.toml").write_text(robots.robot_file("booster_t1").read_text())
+  monkeypatch.chdir(tmp_path)
+  assert common.robot_arg("my.toml") == str(tmp_path / "my.toml")
+  assert common.robot_arg("unitree_g1") == "unitree_g1"
+  shipped = robots.ROBOT_DIR.parents[0] / "policies" / "t1_bipedal_mash"
+  cfg = policy.load_config(shipped, robot=str(tmp_path / "my.toml"))
+  assert cfg.env.robot == str(tmp_path / "my.toml")
+  with pytest.raises(policy.RunError, match="is robot 'unitree_g1', but .* was trained on "
+                                            "'booster_t1'"):
+    policy.load_config(shipped, robot="unitree_g1")
