@@ -471,6 +471,10 @@ class MashEnv(brax_base.Env):
   def dt(self) -> float:
     return self.config.ctrl_dt
 
+  def nominal_domain(self) -> randomize.DomainParams:
+    """The un-randomized robot's parameters (randomization off), with its own joint model."""
+    return randomize.nominal(self.mj_model.nbody, self.n_joints, joints=self._joint_nominal)
+
   # ------------------------------------------------------------------------------------ helpers
   def model_for(self, params: randomize.DomainParams) -> mjx.Model:
     """The MJX model with one environment's randomized parameters."""

@@ -52,7 +52,6 @@ from onnx import TensorProto, helper, numpy_helper
 from mash import agents
 from mash import layout as layout_lib
 from mash import normalization
-from mash import randomize
 
 OPSET = 17
 IR_VERSION = 8  # the IR of opset 17: loads in onnxruntime >= 1.11 and most embedded runtimes
@@ -417,7 +416,7 @@ def reference_fn(parts: PolicyParts):
   from mash import networks as nets
   env = parts.env
   policy = nets.make_policy_fn(parts.networks, deterministic=True)
-  dr = randomize.nominal(env.mj_model.nbody, env.n_joints)
+  dr = env.nominal_domain()
 
   def one(q, dq, last_action, gait_phase, euler, ang_vel, command):
     sensors = dict(q=q, dq=dq, euler=euler, ang_vel=ang_vel, lin_vel=jnp.zeros(3))

@@ -161,7 +161,8 @@ class DomainParams:
 
 class JointNominal(NamedTuple):
   """The un-randomized joint model of the actuated joints: damping, friction and armature, each a
-  number for every joint or ``[n_joints]`` (the robot's, ``MashEnv`` reads them from its model)."""
+  number for every joint or ``[n_joints]``. The defaults are a stand-in for tests of this module;
+  ``MashEnv`` passes its robot's, read from its model (``MashEnv.nominal_domain``)."""
 
   damping: Any = 0.0
   friction: Any = 0.0
