@@ -663,7 +663,7 @@ class MashEnv(brax_base.Env):
       obs[group.name] = jnp.stack(rows)
 
     if cfg.critic == "local":
-      rows = [jnp.pad(obs[g.name], ((0, 0), (0, self._local_dim - g.obs_dim)))
+      rows = [jnp.pad(obs[g.name], ((0, 0), (0, self._local_dim - self.frame_dims[g.name])))
               for g in self.agent_groups]
       obs["critic"] = jnp.concatenate(rows).reshape(-1)
       return obs

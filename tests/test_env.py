@@ -247,6 +247,16 @@ def test_actor_history_stacks_the_last_steps_newest_first():
     env_lib.check_config(env_lib.EnvConfig(actor_history=0))
 
 
+def test_local_critic_sees_each_agents_newest_frame_with_actor_history():
+  """critic='local' with actor_history 2: the critic is each agent's newest frame (2 x 32), not its
+  stacked history (a padding by the stacked size once made this fail at trace time). Traced with
+  eval_shape: no compile."""
+  env = env_lib.make_env("bipedal", "mash", critic="local", actor_history=2)
+  assert env.observation_size == {"legs": (2, 64), "critic": (64,)}
+  shapes = jax.eval_shape(env.reset, jax.random.key(0)).obs
+  assert {k: v.shape for k, v in shapes.items()} == {"legs": (2, 64), "critic": (64,)}
+
+
 def test_leg_observation_layout(dr_env):
   """Leg agent row: q_rel 6 | dq 6 | previous action 6 | phase sin,cos | euler | angvel | command | id."""
   sensors, info, contact = _random_inputs(dr_env, seed=1, phase=0.3)
