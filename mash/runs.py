@@ -4,7 +4,9 @@ A run directory holds ``config.json`` (the resolved :class:`ExperimentConfig`), 
 (one row per iteration, mean over seeds; ``progress_seeds.csv`` has one row per seed),
 TensorBoard event files (and a Weights & Biases run with ``wandb``: :mod:`mash.loggers`), Orbax
 ``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
-Between jitted calls the host only logs, checkpoints and draws the progress bar. SIGINT/SIGTERM
+The loop (:func:`train`) only calls a :class:`mash.trainers.RunTrainer`, the one interface of the
+one-seed, many-seed and mesh trainers; what happens between its jitted calls (logs, scalar
+loggers, checkpoints, the progress bar) are :class:`Hook` s, and signals :class:`StopOnSignals`. SIGINT/SIGTERM
 end the run after the call in flight, with a complete checkpoint to ``--resume`` from (a second
 signal aborts at once; Orbax's atomic step directories still leave the last complete checkpoint
 loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
@@ -18,7 +20,7 @@ Evaluation, export and sim-to-sim load a run's policy without this module: :mod:
 
 Several devices (``jax.device_count() > 1``: one process with several GPUs, or several processes
 joined by :func:`mash.distributed.initialize`) train one seed with its env batch split over a mesh of
-all of them (:mod:`mash.distributed`); ``num_envs`` must divide by the device count. Every process
+all of them (:func:`mash.trainers.on_mesh`); ``num_envs`` must divide by the device count. Every process
 runs the same loop; only process 0 writes run files and draws the progress bar, while checkpoint
 saves and restores are collective (every process takes part). ``--seeds N > 1`` keeps the seed-vmapped
 single-device trainer: in one process it trains on the first device (with a warning), across
@@ -36,7 +38,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, NamedTuple
 
 import jax
 import numpy as np
@@ -46,6 +48,7 @@ from mash import distributed
 from mash import experiment
 from mash import loggers
 from mash import train as train_lib
+from mash import trainers
 # Shared with deployment code, which loads policies without this module (mash.policy).
 from mash.policy import RunError, read_progress  # noqa: F401
 
@@ -77,71 +80,30 @@ def load_config(run_dir: str | os.PathLike) -> experiment.ExperimentConfig:
     raise RunError(f"'{path}/config.json': {e}") from None
 
 
-def build_trainer(cfg: experiment.ExperimentConfig):
-  """The (seed-vmapped when ``cfg.seeds > 1``) trainer of a config."""
-  env = experiment.make_env(cfg)
-  trainer = train_lib.make_train(cfg.train, env)
-  if cfg.seeds > 1:
-    trainer = train_lib.make_seed_trainer(trainer)
-  return trainer
+def build_trainer(cfg: experiment.ExperimentConfig) -> trainers.RunTrainer:
+  """The trainer :func:`train` builds for ``cfg`` (:func:`mash.trainers.build`)."""
+  return trainers.build(cfg)
 
 
-def build_distributed_trainer(cfg: experiment.ExperimentConfig,
-                              mesh: jax.sharding.Mesh | None = None
-                              ) -> distributed.DistributedTrainer:
-  """The one-seed trainer of a config with its env batch split over ``mesh`` (default: every
-  device of every process, :func:`mash.distributed.global_mesh`)."""
-  mesh = distributed.global_mesh() if mesh is None else mesh
-  return distributed.make_distributed_trainer(cfg.train, experiment.make_env(cfg), mesh)
-
-
-def _is_mesh(trainer) -> bool:
-  return isinstance(trainer, distributed.DistributedTrainer)
-
-
-def init_state(trainer, cfg: experiment.ExperimentConfig, salt: int = 0,
-               env_steps: int | None = None):
-  """A fresh train state from the config's seed(s); a non-zero ``salt`` is folded into every key
-  (fresh env states for a resume from a checkpoint without them); ``env_steps``: the envs'
-  curriculum clock at their first episodes (``None``: a fresh run's)."""
-  fold = (lambda key: jax.random.fold_in(key, salt)) if salt else (lambda key: key)
-  if cfg.seeds > 1 and not _is_mesh(trainer):
-    return trainer.init(jax.vmap(fold)(train_lib.seed_keys(cfg.train.seed, cfg.seeds)), env_steps)
-  return trainer.init(fold(jax.random.PRNGKey(cfg.train.seed)), env_steps)
-
-
-def with_fresh_episodes(trainer, cfg: experiment.ExperimentConfig, state, iteration: int):
+def with_fresh_episodes(trainer: trainers.RunTrainer, state, iteration: int):
   """``state`` (restored without env states) with every env on a fresh episode, drawn with keys
   of ``iteration`` and the curriculum clock (``info['env_steps']``) at ``iteration *
   unroll_length``, as it would have read: running episode returns and lengths restart at zero."""
-  fresh = init_state(trainer, cfg, salt=iteration + 1,
-                     env_steps=iteration * cfg.train.unroll_length)
+  fresh = trainer.init(iteration + 1, iteration * trainer.trainer.config.unroll_length)
   episodes = state.episodes.replace(running_return=fresh.episodes.running_return,
                                     running_length=fresh.episodes.running_length,
                                     running_paper_return=fresh.episodes.running_paper_return)
   return state.replace(env_state=fresh.env_state, episodes=episodes)
 
 
-def state_shapes(trainer, cfg: experiment.ExperimentConfig):
-  """Shapes and dtypes of the train state, without running ``init`` (restore template); for a
-  :class:`mash.distributed.DistributedTrainer` also the global shardings, so that every process
-  reads only its own shards."""
-  if _is_mesh(trainer):
-    return distributed.global_state_shapes(trainer.trainer, trainer.mesh,
-                                           jax.random.PRNGKey(cfg.train.seed))
-  if cfg.seeds > 1:
-    return jax.eval_shape(trainer.init, train_lib.seed_keys(cfg.train.seed, cfg.seeds))
-  return jax.eval_shape(trainer.init, jax.random.PRNGKey(cfg.train.seed))
-
-
-def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentConfig,
+def restore_run(run_dir: str | os.PathLike, trainer: trainers.RunTrainer,
                 fields: tuple[str, ...] | None = None,
                 iteration: int | None = None) -> checkpoint.Restored:
   """The newest checkpoint of a run that restores (older ones are tried, with a warning, when
   newer ones are torn), or the one saved at ``iteration``; RunError (one line) when there is
   none."""
   try:
-    restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", state_shapes(trainer, cfg),
+    restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", trainer.state_shapes(),
                                          fields, step=iteration)
   except checkpoint.CheckpointError as e:
     raise RunError(str(e)) from None
@@ -151,31 +113,43 @@ def restore_run(run_dir: str | os.PathLike, trainer, cfg: experiment.ExperimentC
   return restored
 
 
-@contextlib.contextmanager
-def _stop_on_signals(verbose: bool = True) -> Iterator[dict[str, Any]]:
-  """Turns SIGINT/SIGTERM into a flag the loop checks between jitted calls (``flag['signal']``
-  names the first signal, ``flag['signum']`` is its number, 0 before one)."""
-  flag: dict[str, Any] = {"stop": False, "signal": None, "signum": 0}
+class StopOnSignals:
+  """Signal handling for the host loop: inside ``with``, SIGINT/SIGTERM become a request to stop
+  after the call in flight (a second signal aborts at once, ``KeyboardInterrupt``); the handlers
+  there were before come back on exit. :meth:`requested` is asked once per call; across processes
+  it is a collective, so that every process stops after the same call (a signal may reach only
+  some of them)."""
 
-  def handler(signum, frame):
-    if flag["stop"]:  # a second signal: stop now
+  def __init__(self, verbose: bool = True):
+    self.verbose = verbose
+    self.signum = 0
+    self._old = {}
+
+  def _handle(self, signum, frame):
+    if self.signum:  # a second signal: stop now
       raise KeyboardInterrupt
-    flag["stop"] = True
-    flag["signal"] = signal.Signals(signum).name
-    flag["signum"] = int(signum)
-    if verbose:
-      print(f"\nsignal {flag['signal']}: finishing the current call and saving a "
+    self.signum = int(signum)
+    if self.verbose:
+      print(f"\nsignal {signal.Signals(signum).name}: finishing the current call and saving a "
             "checkpoint (send again to abort)", flush=True)
 
-  old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-  try:
-    yield flag
-  finally:
-    for s, h in old.items():
+  def __enter__(self) -> "StopOnSignals":
+    self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+    return self
+
+  def __exit__(self, *exc) -> None:
+    for s, h in self._old.items():
       # None: a handler installed outside Python (jax.distributed's preemption notifier catches
       # SIGTERM), which Python cannot reinstate; ours stays, harmless once the loop is over.
       if h is not None:
         signal.signal(s, h)
+
+  def requested(self) -> str | None:
+    """The name of the signal that asks the run to stop (the first one any process got), or
+    None."""
+    signums = _gather_ints(self.signum)
+    first = signums[np.flatnonzero(signums)]
+    return signal.Signals(int(first[0])).name if first.size else None
 
 
 def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_iteration: int,
@@ -333,42 +307,224 @@ def _agree(error: Exception | None, out: Path) -> None:
     raise error
 
 
-def _plan_devices(cfg: experiment.ExperimentConfig, trainer: Any) -> tuple[bool, int]:
-  """Whether to train on the global mesh, and over how many devices; ConfigError when the config
-  cannot train on the devices there are."""
+def _devices(cfg: experiment.ExperimentConfig, trainer: trainers.RunTrainer | None) -> int:
+  """The devices the run's env batch is split over; ConfigError when the config cannot train
+  on the devices there are (or with the ``trainer`` given)."""
   processes = jax.process_count()
+  if trainer is not None and trainer.seeds != cfg.seeds:
+    raise experiment.ConfigError(f"the trainer given trains {trainer.seeds} seed(s), the config "
+                                 f"{cfg.seeds}")
+  if processes > 1 and cfg.seeds > 1:
+    raise experiment.ConfigError(
+        f"--seeds {cfg.seeds} cannot train across {processes} processes (several seeds train "
+        "in one process, on one device); use --seeds 1 (one run per seed) or one process")
   if trainer is not None:
-    mesh = _is_mesh(trainer)
-    if mesh and cfg.seeds > 1:
-      raise experiment.ConfigError(f"--seeds {cfg.seeds}: the distributed trainer trains one seed")
+    devices = trainer.devices
   else:
-    mesh = jax.device_count() > 1 and cfg.seeds == 1
-    if jax.device_count() > 1 and cfg.seeds > 1 and processes > 1:
-      raise experiment.ConfigError(
-          f"--seeds {cfg.seeds} cannot train across {processes} processes (several seeds train "
-          "in one process, on one device); use --seeds 1 (one run per seed) or one process")
-  if processes > 1 and not mesh:
-    raise experiment.ConfigError(f"a run over {processes} processes needs the distributed "
-                                 "trainer (mash.distributed.DistributedTrainer)")
-  devices = (trainer.mesh.size if trainer is not None else jax.device_count()) if mesh else 1
-  if mesh:
+    devices = jax.device_count() if trainers.uses_mesh(cfg) else 1
+  if processes > 1 and devices < jax.device_count():
+    raise experiment.ConfigError(f"a run over {processes} processes needs a trainer over every "
+                                 "process's devices (mash.trainers.on_mesh)")
+  if devices > 1:
     try:
       train_lib.derived(cfg.train, devices)
     except ValueError as e:
       raise experiment.ConfigError(f"{str(e).rstrip('.')}: the env batch is split over all "
                                    f"{devices} devices") from None
-  return mesh, devices
+  return devices
+
+
+class _Storage:
+  """Where a run writes, and its last complete checkpoint, named when a write is refused."""
+
+  def __init__(self, out: Path, saved: int | None = None):
+    self.out, self.saved = out, saved
+
+  def writing(self, what: str):
+    return _writing(what, self.out, self.saved)
+
+
+class Call(NamedTuple):
+  """What the host loop hands its hooks after each jitted call.
+
+  Attributes:
+    index: the call's number in this sitting, from 0.
+    iteration: the iterations done after it.
+    rows: its ``progress.csv`` rows, one per iteration (mean over seeds).
+    seed_rows: its ``progress_seeds.csv`` rows, one per iteration and seed.
+    state: the train state after it (read it before the next call donates it).
+    seconds: its wall time (the first call's includes compiling).
+    last: whether the loop ends after it (the last call planned, or a stop signal).
+  """
+
+  index: int
+  iteration: int
+  rows: list[dict[str, float]]
+  seed_rows: list[dict[str, float]]
+  state: Any
+  seconds: float
+  last: bool
+
+
+class Hook:
+  """One concern of the host loop, called after every jitted call and closed when the loop
+  ends, also on an abort. Hooks run in the order :func:`train` gives them."""
+
+  def after_call(self, call: Call) -> None:
+    pass
+
+  def close(self) -> None:
+    pass
+
+
+class ProgressLogs(Hook):
+  """Appends each call's rows to ``progress.csv`` and ``progress_seeds.csv`` (on resume, after
+  dropping the rows past ``keep_until``, the restored iteration)."""
+
+  def __init__(self, storage: _Storage, keep_until: int | None):
+    self.storage = storage
+    with storage.writing(f"the logs in '{storage.out}'"):
+      self.logs = (_CsvLog(storage.out / "progress.csv", keep_until),
+                   _CsvLog(storage.out / "progress_seeds.csv", keep_until))
+
+  def after_call(self, call: Call) -> None:
+    for log, rows in zip(self.logs, (call.rows, call.seed_rows)):
+      with self.storage.writing(f"'{log.path}'"):
+        log.write(rows)
+
+
+class ScalarLoggers(Hook):
+  """Hands each call's rows to TensorBoard (and Weights & Biases): :mod:`mash.loggers`."""
+
+  def __init__(self, storage: _Storage, cfg: experiment.ExperimentConfig):
+    with storage.writing(f"the logs in '{storage.out}'"):
+      self.loggers = loggers.make_loggers(cfg, storage.out)
+
+  def after_call(self, call: Call) -> None:
+    for logger in self.loggers:
+      logger.log(call.rows)
+
+  def close(self) -> None:
+    for logger in self.loggers:
+      logger.close()
+
+
+class Checkpoints(Hook):
+  """Saves the state every ``every`` calls and after the last one (a collective: every process
+  runs this hook), and keeps ``storage.saved`` at the last complete step."""
+
+  def __init__(self, storage: _Storage, cfg: experiment.ExperimentConfig,
+               fields: tuple[str, ...] | None):
+    self.storage, self.cfg, self.fields = storage, cfg, fields
+    self.manager = checkpoint.make_manager(storage.out / "checkpoints",
+                                           max_to_keep=cfg.keep_checkpoints)
+
+  def after_call(self, call: Call) -> None:
+    if (call.index + 1) % self.cfg.checkpoint_every and not call.last:
+      return
+    with self.storage.writing(f"checkpoint step {call.iteration}"):
+      new = checkpoint.save(self.manager, call.iteration, call.state, self.cfg.train,
+                            fields=self.fields)
+    if not new and distributed.is_primary():
+      print(f"warning: checkpoint step {call.iteration} was not saved (Orbax found it already in "
+            f"'{self.storage.out / 'checkpoints'}')", file=sys.stderr, flush=True)
+    self.storage.saved = call.iteration
+
+  def close(self) -> None:
+    self.manager.close()
+
+
+class ProgressBar(Hook):
+  """The progress bar (reward, env steps per second), and one line with the expected duration
+  once ``ETA_CALLS`` calls after the first are timed."""
+
+  def __init__(self, cfg: experiment.ExperimentConfig, start_iteration: int,
+               env_steps_per_call: int, show: bool):
+    from tqdm import tqdm
+    self.cfg, self.env_steps_per_call = cfg, env_steps_per_call
+    self.bar = tqdm(total=cfg.train.num_iterations, initial=start_iteration, disable=not show,
+                    unit="it", dynamic_ncols=True)
+    self.timed: list[float] = []
+
+  def after_call(self, call: Call) -> None:
+    if call.index:
+      self.timed.append(call.seconds)
+    if len(self.timed) == ETA_CALLS and not call.last:
+      self.bar.write(_expected_duration(self.timed, self.cfg.train.iterations_per_call,
+                                        self.cfg.train.num_iterations - call.iteration),
+                     file=sys.stderr)
+    self.bar.set_postfix(reward=f"{call.rows[-1]['episode_reward']:.3f}",
+                         steps_per_s=f"{self.env_steps_per_call / call.seconds:,.0f}")
+    self.bar.update(len(call.rows))
+
+  def close(self) -> None:
+    self.bar.close()
+
+
+def _loop(trainer: trainers.RunTrainer, state, iteration: int, calls: int,
+          env_steps_per_iteration: int, wall0: float, hooks: list[Hook], stop: StopOnSignals
+          ) -> tuple[int, list[float], str | None, float | None]:
+  """Runs ``calls`` jitted calls from ``iteration``, handing each to the hooks; ends early after
+  the call during which a stop signal came. Returns the iteration reached, each call's seconds,
+  the stop signal's name (or None) and the last row's episode reward (None without a call)."""
+  seconds, stop_signal, last_reward = [], None, None
+  with stop:
+    for index in range(calls):
+      t0 = time.perf_counter()
+      state, metrics = trainer.train_epoch(state)
+      metrics = trainer.to_host(metrics)
+      seconds.append(time.perf_counter() - t0)
+      rows, seed_rows = _rows(metrics, iteration, env_steps_per_iteration,
+                              time.perf_counter() - wall0, trainer.seeds)
+      iteration, last_reward = rows[-1]["iteration"], rows[-1]["episode_reward"]
+      stop_signal = stop.requested()
+      call = Call(index, iteration, rows, seed_rows, state, seconds[-1],
+                  last=index == calls - 1 or stop_signal is not None)
+      for hook in hooks:
+        hook.after_call(call)
+      if stop_signal is not None:
+        break
+  return iteration, seconds, stop_signal, last_reward
+
+
+def _start(trainer: trainers.RunTrainer, cfg: experiment.ExperimentConfig, storage: _Storage,
+           resume: bool) -> tuple[Any, int]:
+  """The state to train from and its iteration: restored from the run's checkpoints (moving
+  aside the steps that do not restore), or fresh, with ``config.json`` written."""
+  out, primary = storage.out, distributed.is_primary()
+  if not resume:
+    state = trainer.init()
+    if primary:
+      with storage.writing(f"'{out / 'config.json'}'"):
+        out.mkdir(parents=True, exist_ok=True)
+        _write_atomic(out / "config.json", experiment.to_json(cfg))
+    _sync("mash.runs.config_written")
+    return state, 0
+  fields = None if cfg.checkpoint_env_state else checkpoint.LEARNING_FIELDS
+  restored = restore_run(out, trainer, fields=fields)
+  storage.saved = restored.step
+  if primary:
+    with storage.writing(f"'{out / 'checkpoints_unrestorable'}'"):
+      _set_aside(out, restored.skipped)
+  _sync("mash.runs.set_aside")
+  iteration = int(np.asarray(trainer.to_host(restored.state.iteration)).reshape(-1)[0])
+  state = restored.state if fields is None else with_fresh_episodes(trainer, restored.state,
+                                                                    iteration)
+  return state, iteration
 
 
 def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
           show_progress: bool = True, max_calls: int | None = None,
-          trainer: Any = None) -> dict[str, Any]:
+          trainer: trainers.RunTrainer | None = None,
+          hooks: tuple[Hook, ...] = ()) -> dict[str, Any]:
   """Trains ``cfg`` into ``out_dir`` (or continues the run there when ``resume``).
 
   With several devices (``jax.device_count() > 1``) and ``cfg.seeds == 1`` the env batch is split
-  over all of them (:func:`build_distributed_trainer`); every process of a multi-process run calls
+  over all of them (:func:`mash.trainers.build`); every process of a multi-process run calls
   this with the same arguments, and only process 0 writes run files. With several seeds it trains
-  on one device, with a warning (refused across processes).
+  on one device, with a warning (refused across processes). The loop itself only calls the
+  trainer; logs, scalar loggers, checkpoints and the progress bar are :class:`Hook` s around it,
+  and SIGINT/SIGTERM are :class:`StopOnSignals`.
 
   Args:
     cfg: the resolved experiment config (on resume, the run's own config).
@@ -376,9 +532,10 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
     resume: continue from the latest checkpoint in ``out_dir`` that restores.
     show_progress: draw a progress bar (on process 0).
     max_calls: stop after this many jitted calls (tests, interrupted-run demos).
-    trainer: ``build_trainer(cfg)`` or ``build_distributed_trainer(cfg)`` (or a
-      :class:`mash.distributed.DistributedTrainer` of another env) made beforehand, to reuse its
-      compiled programs (tests); it decides between one device and the mesh.
+    trainer: a :class:`mash.trainers.RunTrainer` made beforehand (:func:`build_trainer`, or one of
+      another env), to reuse its compiled programs (tests).
+    hooks: more :class:`Hook` s, run on every process after the built-in ones (a live plot in a
+      notebook, an early stop's bookkeeping); closed with them.
 
   Returns:
     The summary written to ``summary.json``; ``interrupted`` is true (and ``signal`` names the
@@ -391,11 +548,8 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
       quota, a read-only file system); one line naming it and the last complete checkpoint,
       which stays loadable (``resume`` goes on from it once there is space).
   """
-  from tqdm import tqdm
-
   out = Path(out_dir)
   primary = distributed.is_primary()
-  multi = jax.process_count() > 1
   error = None
   try:
     if out.exists() and not out.is_dir():
@@ -405,130 +559,66 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
     elif out.exists() and is_run(out):
       raise RunError(f"'{out}' already holds a run; pass --resume {out} to continue it, or choose "
                      "another --out")
-    on_mesh, devices = _plan_devices(cfg, trainer)
+    devices = _devices(cfg, trainer)
   except (RunError, experiment.ConfigError) as e:
     error = e
   _agree(error, out)  # also the barrier before anything is written
-  derived = train_lib.derived(cfg.train, devices)
-  if trainer is None and not on_mesh and jax.device_count() > 1 and primary:
-    print(f"warning: --seeds {cfg.seeds} trains on one of the {jax.device_count()} devices (only "
-          "a one-seed run splits its env batch over devices)", file=sys.stderr, flush=True)
-
   if trainer is None:
-    trainer = build_distributed_trainer(cfg) if on_mesh else build_trainer(cfg)
-  to_host = distributed.gather_to_host if on_mesh else jax.device_get
-  start_iteration, saved = 0, None
-  saved_fields = None if cfg.checkpoint_env_state else checkpoint.LEARNING_FIELDS
-  if resume:
-    restored = restore_run(out, trainer, cfg, fields=saved_fields)
-    saved = restored.step  # the last complete checkpoint, named when a write is refused
-    if primary:
-      with _writing(f"'{out / 'checkpoints_unrestorable'}'", out, saved):
-        _set_aside(out, restored.skipped)
-    _sync("mash.runs.set_aside")
-    state = restored.state
-    start_iteration = int(np.asarray(to_host(state.iteration)).reshape(-1)[0])
-    if saved_fields is not None:
-      state = with_fresh_episodes(trainer, cfg, state, start_iteration)
-  else:
-    state = init_state(trainer, cfg)
-    if primary:
-      with _writing(f"'{out / 'config.json'}'", out, saved):
-        out.mkdir(parents=True, exist_ok=True)
-        _write_atomic(out / "config.json", experiment.to_json(cfg))
-    _sync("mash.runs.config_written")
-  manager = checkpoint.make_manager(out / "checkpoints", max_to_keep=cfg.keep_checkpoints)
+    if devices == 1 and jax.device_count() > 1 and primary:
+      print(f"warning: --seeds {cfg.seeds} trains on one of the {jax.device_count()} devices "
+            "(only a one-seed run splits its env batch over devices)", file=sys.stderr,
+            flush=True)
+    trainer = build_trainer(cfg)
+  derived = train_lib.derived(cfg.train, devices)
 
-  progress = seed_log = None
-  scalar_loggers = []
-  if primary:
-    with _writing(f"the logs in '{out}'", out, saved):
-      progress = _CsvLog(out / "progress.csv", start_iteration if resume else None)
-      seed_log = _CsvLog(out / "progress_seeds.csv", start_iteration if resume else None)
-      scalar_loggers = loggers.make_loggers(cfg, out)
-  total_calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
-  if max_calls is not None:
-    total_calls = min(total_calls, max_calls)
-  bar = tqdm(total=cfg.train.num_iterations, initial=start_iteration,
-             disable=not (show_progress and primary), unit="it", dynamic_ncols=True)
-  previous = {}
-  if (out / "summary.json").exists() and resume:
-    previous = json.loads((out / "summary.json").read_text())
+  storage = _Storage(out)
+  state, start_iteration = _start(trainer, cfg, storage, resume)
+  previous = json.loads((out / "summary.json").read_text()) if (
+      resume and (out / "summary.json").exists()) else {}
   wall0 = time.perf_counter() - float(previous.get("wall_s", 0.0))
-  compile_s, call_s, iteration = None, [], start_iteration
-  stopped, stop_signal, last_reward = False, None, None
+  calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
+  calls = calls if max_calls is None else min(calls, max_calls)
+
+  run_hooks: list[Hook] = []
   try:
-    with _stop_on_signals(verbose=primary) as flag:
-      for call in range(total_calls):
-        t0 = time.perf_counter()
-        state, metrics = trainer.train_epoch(state)
-        metrics = to_host(metrics)
-        dt = time.perf_counter() - t0
-        if compile_s is None:
-          compile_s = dt
-        else:
-          call_s.append(dt)
-        rows, seed_rows = _rows(metrics, iteration, derived.env_steps_per_iteration,
-                                time.perf_counter() - wall0, cfg.seeds)
-        iteration = rows[-1]["iteration"]
-        last_reward = rows[-1]["episode_reward"]
-        if primary:
-          for log, new_rows in ((progress, rows), (seed_log, seed_rows)):
-            with _writing(f"'{log.path}'", out, saved):
-              log.write(new_rows)
-          for logger in scalar_loggers:
-            logger.log(rows)
-        stop, stop_signal = flag["stop"], flag["signal"]
-        if multi:  # every process stops after the same call (a signal may reach only some)
-          signums = _gather_ints(flag["signum"])
-          stop = bool(signums.any())
-          stop_signal = signal.Signals(int(signums[np.flatnonzero(signums)[0]])).name if stop \
-              else None
-        last = call == total_calls - 1 or stop
-        if (call + 1) % cfg.checkpoint_every == 0 or last:  # collective: every process saves
-          with _writing(f"checkpoint step {iteration}", out, saved):
-            new = checkpoint.save(manager, iteration, state, cfg.train, fields=saved_fields)
-          if not new and primary:
-            print(f"warning: checkpoint step {iteration} was not saved (Orbax found it already in "
-                  f"'{out / 'checkpoints'}')", file=sys.stderr, flush=True)
-          saved = iteration
-        if primary and len(call_s) == ETA_CALLS and call < total_calls - 1:
-          bar.write(_expected_duration(call_s, cfg.train.iterations_per_call,
-                                       cfg.train.num_iterations - iteration), file=sys.stderr)
-        sps = derived.env_steps_per_call / dt
-        bar.set_postfix(reward=f"{rows[-1]['episode_reward']:.3f}", steps_per_s=f"{sps:,.0f}")
-        bar.update(len(rows))
-        if stop:
-          stopped = True
-          break
+    if primary:
+      run_hooks += [ProgressLogs(storage, start_iteration if resume else None),
+                ScalarLoggers(storage, cfg)]
+    run_hooks += [Checkpoints(storage, cfg, None if cfg.checkpoint_env_state
+                              else checkpoint.LEARNING_FIELDS),
+                  ProgressBar(cfg, start_iteration, derived.env_steps_per_call,
+                              show_progress and primary), *hooks]
+    iteration, seconds, stop_signal, last_reward = _loop(
+        trainer, state, start_iteration, calls, derived.env_steps_per_iteration, wall0,
+        run_hooks, StopOnSignals(verbose=primary))
   finally:  # also on an abort (a second signal): Orbax saves are atomic anyway
-    bar.close()
-    manager.close()
-    for logger in scalar_loggers:
-      logger.close()
+    for hook in run_hooks:
+      hook.close()
+
   if primary:
-    with _writing(f"'{out / 'reward_curve.png'}'", out, saved):
+    with storage.writing(f"'{out / 'reward_curve.png'}'"):
       plot_reward_curve(out)
-  steady = float(np.median(call_s)) if call_s else None
-  if primary:
-    final_reward = read_progress(out)["episode_reward"][-1].item() if iteration else None
+  if iteration > start_iteration:
+    final_reward = last_reward
+  elif primary and iteration:
+    final_reward = read_progress(out)["episode_reward"][-1].item()
   else:
-    final_reward = last_reward if iteration > start_iteration else previous.get(
-        "final_episode_reward")
+    final_reward = previous.get("final_episode_reward")
+  steady = float(np.median(seconds[1:])) if len(seconds) > 1 else None
   summary = {
       "task": cfg.task, "algo": cfg.algo, "preset": cfg.preset, "ablation": cfg.ablation,
       "seeds": cfg.seeds, "iterations": iteration,
       "env_steps": iteration * derived.env_steps_per_iteration,
       "wall_s": time.perf_counter() - wall0,
-      "first_call_s": compile_s,
+      "first_call_s": seconds[0] if seconds else None,
       "train_env_steps_per_s": (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
       "final_episode_reward": final_reward,
-      "interrupted": stopped,
-      "signal": stop_signal if stopped else None,
+      "interrupted": stop_signal is not None,
+      "signal": stop_signal,
       "backend": jax.default_backend(), "devices": devices, "processes": jax.process_count(),
   }
   if primary:
-    with _writing(f"'{out / 'summary.json'}'", out, saved):
+    with storage.writing(f"'{out / 'summary.json'}'"):
       _write_atomic(out / "summary.json", json.dumps(summary, indent=2))
   _sync("mash.runs.done")
   return summary

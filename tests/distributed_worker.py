@@ -101,16 +101,17 @@ def main() -> None:
 
   if args.run:
     import dataclasses
-    from mash import experiment, runs
+    from mash import experiment, runs, trainers
     cfg = experiment.ExperimentConfig(
         preset='smoke', checkpoint_every=1,
         train=dataclasses.replace(config, num_iterations=config.iterations_per_call * args.calls))
-    first = runs.train(cfg, args.run, show_progress=False, max_calls=1, trainer=dt)
+    on_mesh = trainers.on_mesh(dt, config.seed)
+    first = runs.train(cfg, args.run, show_progress=False, max_calls=1, trainer=on_mesh)
     _log(args, t_start, f'runs.train: {first["iterations"]} iterations')
-    resumed = runs.train(cfg, args.run, resume=True, show_progress=False, trainer=dt)
+    resumed = runs.train(cfg, args.run, resume=True, show_progress=False, trainer=on_mesh)
     _log(args, t_start, f'runs.train resumed: {resumed["iterations"]} iterations')
     try:
-      runs.train(cfg, args.run, show_progress=False, trainer=dt)
+      runs.train(cfg, args.run, show_progress=False, trainer=on_mesh)
       refused = ''
     except runs.RunError as e:
       refused = str(e)

@@ -146,7 +146,7 @@ def test_run_directory_of_two_processes(results):
   key: bit for bit, so the resume restored the global state exactly); a second non-resume run
   into the directory is refused by both processes; one process restores the policy."""
   import json
-  from mash import runs, train
+  from mash import runs, train, trainers
   from mash.config import TrainConfig
   from mash.toy_env import make_toy_env
   sys.path.insert(0, str(ROOT / 'tests'))
@@ -171,8 +171,9 @@ def test_run_directory_of_two_processes(results):
 
   # One process (no mesh) reads the policy the two processes saved, as evaluate/export do.
   cfg = runs.load_config(run)
-  trainer = train.make_train(TrainConfig(**CONFIG), make_toy_env('legs_arms', 'mash'))
-  restored = runs.restore_run(run, trainer, cfg, fields=('params', 'normalizer'))
+  trainer = trainers.one_seed(train.make_train(TrainConfig(**CONFIG),
+                                              make_toy_env('legs_arms', 'mash')), cfg.train.seed)
+  restored = runs.restore_run(run, trainer, fields=('params', 'normalizer'))
   assert restored.step == 4
   flat = {'params/' + jax.tree_util.keystr(p): np.asarray(x)
           for p, x in jax.tree_util.tree_flatten_with_path(restored.state.params)[0]}

@@ -51,23 +51,23 @@ def assert_same_policy(a: policy_lib.Policy, b: policy_lib.Policy) -> None:
 def test_policy_acts_as_the_trainer(smoke_run, smoke_trainer, smoke_config):
   """The policy loaded without a trainer holds the trainer's restored actors and actor-stream
   statistics bit for bit, and acts as the trainer's networks do on them."""
-  restored = runs.restore_run(smoke_run, smoke_trainer, smoke_config,
+  restored = runs.restore_run(smoke_run, smoke_trainer,
                               fields=checkpoint.POLICY_FIELDS)
   policy = policy_lib.load(smoke_run)
   assert policy.iteration == int(restored.step) == smoke_config.train.num_iterations
   assert (policy.seed, policy.source, policy.config) == (0, str(smoke_run), smoke_config)
   assert set(policy.params) == {"actors"}  # no critic
-  assert set(policy.normalizer) == {g.name for g in smoke_trainer.env.agent_groups}
+  assert set(policy.normalizer) == {g.name for g in smoke_trainer.trainer.env.agent_groups}
   jax.tree.map(np.testing.assert_array_equal, policy.params["actors"],
                restored.state.params["actors"])
   for name, stats in policy.normalizer.items():
     jax.tree.map(np.testing.assert_array_equal, stats, restored.state.normalizer[name])
 
-  obs = random_obs(smoke_trainer.env, 64)
-  reference = jax.jit(networks.make_policy_fn(smoke_trainer.networks, deterministic=True))
+  obs = random_obs(smoke_trainer.trainer.env, 64)
+  reference = jax.jit(networks.make_policy_fn(smoke_trainer.trainer.networks, deterministic=True))
   want = np.asarray(reference(restored.state.params, restored.state.normalizer, obs))
   got = np.asarray(jax.jit(policy_lib.make_inference_fn(policy))(obs))  # its own env
-  assert got.shape == (64, smoke_trainer.env.action_size)
+  assert got.shape == (64, smoke_trainer.trainer.env.action_size)
   np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
   assert np.abs(want).max() > 1e-3  # the comparison is not between zeros
 

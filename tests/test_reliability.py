@@ -136,7 +136,7 @@ def test_toy_trainer_survives_a_nan_state(mash_trainer):
 def test_mjx_trainer_survives_nan_and_inf_states(smoke_trainer):
   """The real env, batched: env 3's qpos gets a NaN, env 7's qvel an inf. Both envs are reset in
   the first step, counted, and nothing non-finite reaches the parameters or the logged metrics."""
-  state = smoke_trainer.init(jax.random.PRNGKey(0))
+  state = smoke_trainer.init()
   data = state.env_state.pipeline_state
   data = data.replace(qpos=data.qpos.at[3, 2].set(jnp.nan), qvel=data.qvel.at[7, 0].set(jnp.inf))
   env_state = state.env_state.replace(pipeline_state=data)
@@ -354,10 +354,10 @@ def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer
   assert summary["iterations"] == 10 and not summary["interrupted"]
   assert _tree_digest(run / "checkpoints_unrestorable" / "10") == torn
   assert _rows_without_wall(run / "progress.csv") == _rows_without_wall(second_run / "progress.csv")
-  assert runs.restore_run(run, smoke_trainer, cfg).step == 10
+  assert runs.restore_run(run, smoke_trainer).step == 10
   # A partial step (an interrupted Orbax write: a temporary directory) is never taken for complete.
   shutil.copytree(run / "checkpoints" / "10", run / "checkpoints" / "15.orbax-checkpoint-tmp-1")
-  assert runs.restore_run(run, smoke_trainer, cfg).step == 10
+  assert runs.restore_run(run, smoke_trainer).step == 10
 
 
 def _du(path: Path) -> int:
@@ -374,15 +374,15 @@ def test_checkpoints_without_env_state_are_small_and_resume(smoke_config, smoke_
   runs.train(cfg, run, show_progress=False, max_calls=1, trainer=smoke_trainer)
   lean_bytes, full_bytes = _du(run / "checkpoints" / "5"), _du(second_run / "checkpoints" / "5")
   assert lean_bytes < 0.5 * full_bytes, (lean_bytes, full_bytes)
-  lean = runs.restore_run(run, smoke_trainer, cfg, fields=checkpoint.LEARNING_FIELDS).state
+  lean = runs.restore_run(run, smoke_trainer, fields=checkpoint.LEARNING_FIELDS).state
   manager = checkpoint.make_manager(second_run / "checkpoints", max_to_keep=None)
-  full = checkpoint.restore(manager, 5, runs.state_shapes(smoke_trainer, smoke_config)).state
+  full = checkpoint.restore(manager, 5, smoke_trainer.state_shapes()).state
   manager.close()
   for name in checkpoint.LEARNING_FIELDS:
     jax.tree.map(np.testing.assert_array_equal, getattr(lean, name), getattr(full, name))
   with pytest.raises(runs.RunError):  # a full restore finds no env state in it
-    runs.restore_run(run, smoke_trainer, smoke_config)
-  resumed = runs.with_fresh_episodes(smoke_trainer, cfg, lean, 5)
+    runs.restore_run(run, smoke_trainer)
+  resumed = runs.with_fresh_episodes(smoke_trainer, lean, 5)
   np.testing.assert_array_equal(resumed.env_state.info["env_steps"], 5 * 16)
   np.testing.assert_array_equal(resumed.episodes.running_length, 0.0)
   shapes = lambda tree: [np.shape(x) for x in jax.tree.leaves(tree)]
@@ -435,8 +435,7 @@ def _assert_same_end(run: Path, reference: Path, trainer) -> None:
   train state, bit for bit."""
   for name in ("progress.csv", "progress_seeds.csv"):
     assert _rows_without_wall(run / name) == _rows_without_wall(reference / name), name
-  cfg = runs.load_config(reference)
-  a, b = runs.restore_run(run, trainer, cfg), runs.restore_run(reference, trainer, cfg)
+  a, b = runs.restore_run(run, trainer), runs.restore_run(reference, trainer)
   assert a.step == b.step
   raw = lambda x: jax.random.key_data(x) if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else x
   jax.tree.map(np.testing.assert_array_equal, jax.tree.map(raw, a.state),
@@ -458,6 +457,34 @@ def _signal_on_call(trainer, calls: dict[int, list[signal.Signals]]):
   return trainer._replace(train_epoch=train_epoch)
 
 
+class _Recorder(runs.Hook):
+  """A user's hook: what it saw after each call, and whether it was closed."""
+
+  def __init__(self, out: Path):
+    self.out, self.seen, self.closed = out, [], False
+
+  def after_call(self, call):
+    logged = runs.read_progress(self.out)["iteration"][-1]
+    saved = sorted(int(p.name) for p in (self.out / "checkpoints").iterdir() if p.name.isdigit())
+    self.seen.append((call.index, call.iteration, call.last, int(logged), saved[-1]))
+
+  def close(self):
+    self.closed = True
+
+
+def test_a_users_hook_runs_after_the_logs_and_checkpoints(smoke_config, smoke_trainer, tmp_path):
+  """A hook given to ``runs.train`` sees every call after its rows are logged and its checkpoint
+  saved; a SIGTERM during call 2 makes that call the last, and the hook is closed."""
+  cfg = _fifteen(smoke_config)
+  recorder = _Recorder(tmp_path / "run")
+  trainer = _signal_on_call(smoke_trainer, {2: [signal.SIGTERM]})
+  summary = runs.train(cfg, tmp_path / "run", show_progress=False, trainer=trainer,
+                       hooks=(recorder,))
+  assert summary["signal"] == "SIGTERM"
+  assert recorder.seen == [(0, 5, False, 5, 5), (1, 10, True, 10, 10)]
+  assert recorder.closed
+
+
 def test_sigterm_saves_and_a_second_signal_aborts(smoke_config, smoke_trainer, tmp_path):
   """SIGTERM during call 1: the call finishes, step 5 is saved, the summary says SIGTERM (exit
   143). Two SIGINTs before call 2 of another run: it aborts at once, step 5 stays loadable."""
@@ -467,14 +494,14 @@ def test_sigterm_saves_and_a_second_signal_aborts(smoke_config, smoke_trainer, t
   summary = runs.train(cfg, tmp_path / "term", show_progress=False, trainer=trainer)
   assert summary["interrupted"] and summary["signal"] == "SIGTERM"
   assert summary["iterations"] == 5 and common.exit_status(summary) == 143
-  assert runs.restore_run(tmp_path / "term", smoke_trainer, cfg).step == 5
+  assert runs.restore_run(tmp_path / "term", smoke_trainer).step == 5
 
   handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
   trainer = _signal_on_call(smoke_trainer, {2: [signal.SIGINT, signal.SIGINT]})
   with pytest.raises(KeyboardInterrupt):
     runs.train(cfg, tmp_path / "abort", show_progress=False, trainer=trainer)
   assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers
-  assert runs.restore_run(tmp_path / "abort", smoke_trainer, cfg).step == 5
+  assert runs.restore_run(tmp_path / "abort", smoke_trainer).step == 5
   np.testing.assert_array_equal(runs.read_progress(tmp_path / "abort")["iteration"],
                                 np.arange(1, 6))
 
@@ -537,7 +564,7 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
   assert "Traceback" not in stderr, stderr[-3000:]
   assert _iterations(out) == list(range(1, 6))  # the call in flight was finished, and only it
   cfg = runs.load_config(out)
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 5
+  assert runs.restore_run(out, smoke_trainer).step == 5
 
   resume = ["--resume", str(out), "--no-progress"]
   checkpoints = out / "checkpoints"
@@ -546,7 +573,7 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
   partial = checkpoints / "10.orbax-checkpoint-tmp"
   assert not (checkpoints / "10").exists()
   assert any((partial / "state.orbax-checkpoint-tmp").iterdir())  # the kill fell mid-write
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 5
+  assert runs.restore_run(out, smoke_trainer).step == 5
   assert policy.load(out).iteration == 5
   assert _iterations(out) == list(range(1, 11))
 
@@ -557,8 +584,8 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
                tmp_path / "marks3" / "killed_in_call_2")
   assert not partial.exists()
   for step in (5, 10):
-    assert runs.restore_run(out, smoke_trainer, cfg, iteration=step).step == step
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 10
+    assert runs.restore_run(out, smoke_trainer, iteration=step).step == step
+  assert runs.restore_run(out, smoke_trainer).step == 10
   assert _iterations(out) == list(range(1, 11))
 
   resumed = subprocess.run([sys.executable, "-m", "experiments.bipedal", *resume],
@@ -622,7 +649,7 @@ def test_full_disk_at_a_checkpoint_is_one_line_and_resumes(smoke_config, smoke_t
   assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
   monkeypatch.undo()
   assert not (out / "checkpoints" / "10").exists()
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 5
+  assert runs.restore_run(out, smoke_trainer).step == 5
   assert policy.load(out).iteration == 5
 
   summary = runs.train(cfg, out, resume=True, show_progress=False, trainer=smoke_trainer)
@@ -679,7 +706,7 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
                   f"checkpoint step 10 is complete: free space, then --resume {out}")
   monkeypatch.undo()
   assert (out / "progress.csv").read_bytes().endswith(b"\n1")
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 10
+  assert runs.restore_run(out, smoke_trainer).step == 10
 
   written = Path.write_text
 
@@ -696,7 +723,7 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
                   f"checkpoint step 15 is complete: free space, then --resume {out}")
   monkeypatch.undo()
   assert not (out / "summary.json").exists()
-  assert runs.restore_run(out, smoke_trainer, cfg).step == 15
+  assert runs.restore_run(out, smoke_trainer).step == 15
 
   summary = runs.train(cfg, out, resume=True, show_progress=False, trainer=smoke_trainer)
   assert summary["iterations"] == 15 and not summary["interrupted"]

@@ -63,6 +63,25 @@ def test_vmapped_seeds_equal_single_seed_runs(mash_trainer, learning_run):
   assert not np.allclose(jax.tree.leaves(params)[0][0], jax.tree.leaves(params)[0][1])
 
 
+def test_run_trainers_of_one_and_many_seeds_share_one_interface(mash_trainer):
+  """The host loop's view of a trainer: the restore template matches a fresh state leaf for leaf,
+  seed i of many is the one-seed run of seed + i, and a salt draws other keys."""
+  from mash import trainers
+  one, many = trainers.one_seed(mash_trainer, 3), trainers.many_seeds(mash_trainer, 3, 2)
+  assert (one.seeds, one.devices, many.seeds, many.devices) == (1, 1, 2, 1)
+  for run_trainer in (one, many):
+    state = run_trainer.init()
+    chex.assert_trees_all_equal_shapes_and_dtypes(
+        jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state),
+        run_trainer.state_shapes())
+  direct = jax.device_get(mash_trainer.init(jax.random.PRNGKey(3)).params)
+  assert_trees_close(jax.device_get(one.init().params), direct)
+  assert_trees_close(jax.tree.map(lambda x: x[0], jax.device_get(many.init().params)), direct)
+  salted = jax.device_get(one.init(salt=4).env_state.obs)
+  assert not np.allclose(jax.tree.leaves(salted)[0],
+                         jax.tree.leaves(jax.device_get(one.init().env_state.obs))[0])
+
+
 def test_checkpoint_round_trip_and_exact_resume(mash_trainer, toy_config, tmp_path):
   key = jax.random.PRNGKey(7)
   # A: two calls straight through.
