@@ -1,7 +1,7 @@
 """The public layout (``mash.layout``): sizes against hand counts for the T1's tasks, partitions
 and switches; segments that tile each observation; the env reporting the layout's sizes; each named
-segment of a real observation holding what its name says (one env build per task); and no module
-but ``mash/env.py`` reading a ``MashEnv``'s private fields.
+segment of a real observation holding what its name says (one env build per task and robot); and
+no module but ``mash/env.py`` reading a ``MashEnv``'s private fields.
 """
 
 from __future__ import annotations
@@ -182,10 +182,12 @@ def test_layout_needs_only_the_spec_and_the_config_fields():
 PHASE_OFFSET = {"left_leg": 0.0, "right_leg": 0.5, "left_arm": 0.5, "right_arm": 0.0}
 
 
-@pytest.fixture(scope="module", params=env_lib.TASKS)
+@pytest.fixture(scope="module", params=list(itertools.product(env_lib.TASKS, robots.names())),
+                ids="-".join)
 def reset_env(request):
-  """One env per task and its reset state (jitted reset)."""
-  env = env_lib.make_env(request.param, "mash")
+  """One env per task and robot and its reset state (jitted reset)."""
+  task, robot = request.param
+  env = env_lib.make_env(task, "mash", robot=robot)
   return env, jax.jit(env.reset)(jax.random.PRNGKey(3))
 
 
@@ -275,7 +277,7 @@ def test_each_segment_of_a_moved_state_holds_its_name(reset_env):
   info = dict(state.info, command=jnp.array([0.0, 0.5, -0.1, 0.2]), phase=jnp.asarray(0.3),
               last_action=jnp.asarray(rng.uniform(-1, 1, env.action_size), jnp.float32))
   contact = jnp.array([1.0, 0.0])
-  obs = env.observe(env.sensors(moved), info, contact)
+  obs = jax.jit(lambda d, i, c: env.observe(env.sensors(d), i, c))(moved, info, contact)
   _check_segments(env, obs, moved.qpos, moved.qvel, info, contact)
 
 

@@ -179,8 +179,8 @@ def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_
   phys = dataclasses.replace(env_cfg.physics, iterations=20, ls_iterations=20)
   env = env_lib.MashEnv(dataclasses.replace(env_cfg, physics=phys))
   act = jax.jit(policy_lib.make_inference_fn(policy, env))
-  step = jax.jit(env.step)
-  state = env.reset(jax.random.PRNGKey(3))
+  step, sensors = jax.jit(env.step), jax.jit(env.sensors)  # eagerly, MJX runs op by op: minutes
+  state = jax.jit(env.reset)(jax.random.PRNGKey(3))
   for _ in range(10):  # off the home pose
     state = step(state, act(state.obs))
   d = state.pipeline_state  # and moving: the PD loop has work to do
@@ -215,7 +215,7 @@ def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_
     # lands within ~1e-6 in angle and ~1e-4 in rate (measured: 2e-7 rad, 2e-5 rad/s). The base
     # height is compared after steps only: both read it, as MuJoCo's step leaves it, from body
     # positions of the last substep's start, which the copy (mj_forward) does not have.
-    ours, theirs = robot.sensors(), env.sensors(state.pipeline_state)
+    ours, theirs = robot.sensors(), sensors(state.pipeline_state)
     for key in ("q", "dq", "euler", "ang_vel", "lin_vel", "base_height")[:5 + (t > 0)]:
       close(key, ours[key], theirs[key], 1e-3 if key in ("dq", "ang_vel", "lin_vel") else 1e-5)
     action, target = controller.act(ours, command)
