@@ -209,19 +209,34 @@ def plot_curves(run_dirs: dict, path: Path | None = None, names: dict | None = N
   return fig
 
 
+def hip_trace(seed_dir: Path, seconds: float = 3.0) -> dict:
+  """The first evaluation episode's first ``seconds``: ``dt``, ``hip_pitch [T, 2]`` and
+  ``hip_pitch_ref [T, 2]``, kept in ``eval/hip_trace.npz`` (a few KiB) the first time it is read
+  from ``eval/trajectories.npz`` (megabytes, not committed), so that a report can be rebuilt from a
+  comparison's committed records."""
+  trace = Path(seed_dir) / "eval" / "hip_trace.npz"
+  if not trace.is_file():
+    tr = np.load(Path(seed_dir) / "eval" / "trajectories.npz")
+    n = min(int(seconds / float(tr["dt"])), tr["hip_pitch"].shape[1])
+    np.savez(trace, dt=tr["dt"], hip_pitch=tr["hip_pitch"][0, :n],
+             hip_pitch_ref=tr["hip_pitch_ref"][0, :n])
+  with np.load(trace) as tr:
+    return {k: tr[k] for k in tr.files}
+
+
 def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   fig, axes = plt.subplots(2, 1, figsize=(7, 4.5), sharex=True)
   for algo, d in run_dirs.items():
-    tr = np.load(seed_dirs(d)[0] / "eval" / "trajectories.npz")
-    n = min(int(seconds / float(tr["dt"])), tr["hip_pitch"].shape[1])
+    tr = hip_trace(seed_dirs(d)[0], seconds)
+    n = min(int(seconds / float(tr["dt"])), tr["hip_pitch"].shape[0])
     t = np.arange(n) * float(tr["dt"])
     for i in range(2):
-      axes[i].plot(t, tr["hip_pitch"][0, :n, i], label=NAMES[algo])
+      axes[i].plot(t, tr["hip_pitch"][:n, i], label=NAMES[algo])
       if algo == "mash":
-        axes[i].plot(t, tr["hip_pitch_ref"][0, :n, i], "--", color="green", label="reference")
+        axes[i].plot(t, tr["hip_pitch_ref"][:n, i], "--", color="green", label="reference")
   for i, side in enumerate(("left", "right")):
     axes[i].set_ylabel(f"{side} hip pitch (rad)")
     axes[i].grid(alpha=0.3)

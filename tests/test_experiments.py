@@ -391,6 +391,12 @@ def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
   compare.report("bipedal", out, "smoke")
   for name in ("report.md", "report.json", "reward_curves.png", "hip_pitch.png"):
     assert (out / name).stat().st_size > 0
+  # A clone holds the committed records only: no trajectories.npz, the hip trace instead.
+  for algo in ("mash", "ppo"):
+    (out / algo / "seed0" / "eval" / "trajectories.npz").unlink()
+  (out / "hip_pitch.png").unlink()
+  compare.report("bipedal", out, "smoke")
+  assert (out / "hip_pitch.png").stat().st_size > 0
   # The tuning: one rule for both methods (the higher final reward; a tie to the smaller rate),
   # and the seed runs then live under the picked rate.
   assert compare.pick_learning_rates({"mash": {1e-3: 150.0, 3e-4: 120.0},
