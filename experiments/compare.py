@@ -6,8 +6,8 @@ Then both train on the same preset, budget and seeds, one run per method and see
 (``OUT/<algo>/lr<picked>/seed<s>/``, seed 0 being the search's run; each a plain ``python -m
 experiments.<task>`` run with ``train.seed=s``, so on a CPU it uses both cores the same way). The command resumes: a
 finished seed is reused, an interrupted one continues from its checkpoint, so the runs can span
-several sittings; seeds run in pairs (MASH then PPO for seed 0, then seed 1, ...). Every finished
-seed is evaluated (``OUT/<algo>/seed<s>/eval/``) and the report is rewritten after each pair:
+several sittings; seeds run in pairs (MASH then PPO for seed 0, then seed 1, ...). Every run is
+evaluated right after it trains, while its checkpoint is at hand (``OUT/<algo>/lr<rate>/seed<s>/eval/``), and the report is rewritten after each pair:
 ``report.md`` (the paper's metrics table with ours beside it, statistics over seeds),
 ``report.json``, ``reward_curves.png`` (paper-weight reward, mean and band over seeds) and
 ``hip_pitch.png``.
@@ -410,6 +410,14 @@ def main(argv=None) -> None:
         if code != 0:
           raise common.UserError(f"the {algo} run of seed {seed} stopped with status {code}; "
                                  f"run the same command again to resume it ({d})")
+      # Right after training, while the checkpoint is on this machine: checkpoints are not
+      # kept in git, so a later session or a clone may hold only the records.
+      metrics_file = d / "eval" / "metrics.json"
+      fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
+               .get("eval_config", {}).get("num_episodes") == args.episodes)
+      if not fresh:
+        print(f"[{algo} lr {lr:g} seed {seed}] evaluating on {args.episodes} episodes", flush=True)
+        evaluate_run(str(d), eval_cfg)
       return d
 
     # The same small search for both methods: seed 0 at each rate, the same rule picks.
@@ -425,13 +433,7 @@ def main(argv=None) -> None:
           flush=True)
     for seed in range(args.seeds):
       for algo, cfg in cfgs.items():
-        d = train_seed(algo, cfg, picked[algo], seed)
-        metrics_file = d / "eval" / "metrics.json"
-        fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
-                 .get("eval_config", {}).get("num_episodes") == args.episodes)
-        if not fresh:
-          print(f"[{algo} seed {seed}] evaluating on {args.episodes} episodes", flush=True)
-          evaluate_run(str(d), eval_cfg)
+        train_seed(algo, cfg, picked[algo], seed)
       md = report(args.task, out, preset)
       print(f"report after {seed + 1} paired seed(s): {out}/report.md", flush=True)
     print(md)
