@@ -17,6 +17,14 @@ same flag): compiling MJX dominates the suite, and level 0 compiled ``test_env.p
 of 260 s and ``test_brax.py`` in 76 s instead of 121 s (fresh caches, 2 busy CPU cores). The tests
 compare runs of the same session with each other, never with a curve recorded outside it, so the
 level changes no verdict; the recipes' own runs keep XLA's defaults.
+
+The suite runs in two worker processes (pytest-xdist, ``-n 2 --dist loadgroup`` in
+``pyproject.toml``): compiling is single-threaded, so two workers keep both cores busy. Tests are
+grouped so that the smoke trainer, the costliest fixture, is compiled once per worker at most: the
+tests that train with it or change its run form one group, sent first to one worker; each other
+file is a group of its own, handed to whichever worker is free, in file order. The files whose
+tests only read the smoke run (``SMOKE_READERS``) go last, when the trainer is in the persistent
+cache, so that a second worker builds the run from the cache rather than compiling it again.
 """
 
 from __future__ import annotations
@@ -36,6 +44,7 @@ from mash import train
 from mash.config import TrainConfig
 from mash.toy_env import make_toy_env
 
+SMOKE_READERS = frozenset({'test_notebooks', 'test_seams', 'test_sim2sim', 'test_tracking'})
 TOY_CALLS = 6  # jitted calls of the learning run (x iterations_per_call iterations).
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,3 +120,16 @@ def smoke_run(tmp_path_factory, smoke_config, smoke_trainer):
   out = tmp_path_factory.mktemp('runs') / 'smoke_bipedal_mash'
   runs.train(smoke_config, out, show_progress=False, trainer=smoke_trainer)
   return out
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(items):
+  """Groups and orders the tests for the two workers (see the module docstring)."""
+  def rank(item):
+    if item.path.stem in SMOKE_READERS:
+      return 2
+    return 0 if 'smoke_trainer' in getattr(item, 'fixturenames', ()) else 1
+
+  for item in items:
+    item.add_marker(pytest.mark.xdist_group('smoke' if rank(item) == 0 else item.path.stem))
+  items.sort(key=rank)  # stable: the order within a file is kept
