@@ -363,6 +363,31 @@ def test_compare_report_from_synthetic_results():
   assert data["table"]["mash"]["T_conv@1"]["mean"] == pytest.approx(conv["t_conv"]["mash"][1][0])
   assert data["table"]["ppo"]["T_conv@1"]["n"] == 2  # the flat seed never reached it
   assert "window 2" in md and "never reached: Single-agent PPO 1 seed(s)" in md
+  # The README's table: the middle window's T_conv, ours beside the paper's, the verdict.
+  from experiments.compare import readme_table
+  data = json.loads(json.dumps(data, default=float))  # as report.json holds it
+  rows = readme_table([data]).splitlines()
+  t_conv = next(r for r in rows if "T_conv" in r)
+  assert "window 2" in t_conv and "| 1306 | 1661 |" in t_conv
+  mean = data["table"]["mash"]["T_conv@2"]["mean"]
+  assert t_conv.startswith("| bipedal (3 seeds) |") and f"| {mean:.3g} ± " in t_conv
+  s_action = next(r for r in rows if "| S_action |" in r)
+  assert "| MASH better | 0.107 | 0.547 |" in s_action
+  assert not any("arm-leg" in r for r in rows)  # bipedal has no arm agents
+
+
+def test_readme_table_comes_from_the_committed_reports():
+  """The README's MASH-vs-PPO table is what ``compare --readme-table`` prints from the reports
+  its marker names (regenerate it with that command after a report changes)."""
+  from experiments.compare import README_BEGIN, README_END, readme_block
+  repo = Path(__file__).resolve().parents[1]
+  readme = (repo / "README.md").read_text()
+  assert README_BEGIN in readme, "the README has no generated comparison table"
+  start = readme.index(README_BEGIN)
+  block = readme[start:readme.index(README_END, start) + len(README_END) + 1]
+  dirs = block.splitlines()[0][len(README_BEGIN):].removesuffix("-->").split()
+  assert dirs and all((repo / d / "report.json").is_file() for d in dirs)
+  assert block == readme_block(dirs, repo)
 
 
 def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
