@@ -365,9 +365,9 @@ def main(argv=None) -> None:
       env_lib.check_config(env_lib.EnvConfig(robot=args.robot))
     except ValueError as e:
       raise common.UserError(f"--robot: {e}") from None
-    if args.task not in tasks.NAMES:
+    if args.task not in tasks.names():
       raise common.UserError(f"task '{args.task}' is unknown; expected one of "
-                             f"{', '.join(tasks.NAMES)}")
+                             f"{', '.join(tasks.names())}")
     if args.batch is not None and not 0 <= args.batch <= MAX_BATCH:
       raise common.UserError(f"--batch must be a number of envs in [1, {MAX_BATCH}] (0: the "
                              f"default), got {args.batch}")

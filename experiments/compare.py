@@ -426,9 +426,9 @@ def main(argv=None) -> None:
     from experiments.evaluate import evaluate_run
     common.check_paths({"--out": args.out})
     from mash import tasks
-    if args.task not in tasks.NAMES:
+    if args.task not in tasks.names():
       raise common.UserError(f"--task '{args.task}' is unknown; expected one of "
-                             f"{', '.join(tasks.NAMES)}")
+                             f"{', '.join(tasks.names())}")
     if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
       raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
     try:

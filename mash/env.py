@@ -13,7 +13,6 @@ observations and ``next_critic_obs`` zeroed and ``info['nan_reset'] = 1`` so the
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -33,7 +32,6 @@ from mash.config import check_number, check_range
 
 State = brax_base.State
 
-TASKS = layout_lib.TASKS
 PARTITIONS = layout_lib.PARTITIONS
 
 
@@ -182,7 +180,7 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
   Raises:
     ValueError: one line naming the bad field, its value and what was expected.
   """
-  for value, allowed, what in ((config.task, tasks.NAMES, "task"),
+  for value, allowed, what in ((config.task, tasks.names(), "task"),
                                (config.partition, PARTITIONS, "partition"),
                                (config.critic, ("global", "local"), "critic")):
     if value not in allowed:

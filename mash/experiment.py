@@ -179,7 +179,7 @@ def make_config(task: str, algo: str = "mash", preset: str = "cpu", seeds: int =
 
 
 def _check_choices(task: str, algo: str, preset: str, ablation: str, seeds: int) -> None:
-  for value, allowed, what in ((task, tasks.NAMES, "task"), (algo, ALGOS, "algo"),
+  for value, allowed, what in ((task, tasks.names(), "task"), (algo, ALGOS, "algo"),
                                (preset, PRESETS, "preset"), (ablation, ABLATIONS, "ablation")):
     if value not in allowed:
       raise ConfigError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")

@@ -28,7 +28,6 @@ from mash import tasks
 if TYPE_CHECKING:
   from mash.env import EnvConfig
 
-TASKS = tasks.NAMES
 PARTITIONS = ("mash", "ppo", "per_limb")
 CRITICS = ("global", "local")
 COMMAND_SIZE = 4  # standing flag (0/1), vx (m/s), vy (m/s), yaw rate (rad/s)
@@ -232,7 +231,7 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
     robots.SpecError: the limbs of one group have different joint counts (one actor cannot
       serve them).
   """
-  for value, allowed, what in ((config.task, tasks.NAMES, "task"),
+  for value, allowed, what in ((config.task, tasks.names(), "task"),
                                (config.partition, PARTITIONS, "partition"),
                                (config.critic, CRITICS, "critic")):
     if value not in allowed:

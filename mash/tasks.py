@@ -46,11 +46,16 @@ TASKS: dict[str, Task] = {
                      description="two leg and two arm agents; each arm swings with the opposite "
                                  "leg"),
 }
-NAMES = tuple(TASKS)
+
+
+def names() -> tuple[str, ...]:
+  """The tasks' names, in ``TASKS`` order (read each call, so an entry added to ``TASKS`` is
+  known everywhere)."""
+  return tuple(TASKS)
 
 
 def get(name: str) -> Task:
   """The task called ``name``; ValueError (one line) naming the known ones otherwise."""
   if name not in TASKS:
-    raise ValueError(f"task '{name}' is unknown; expected one of {', '.join(NAMES)}")
+    raise ValueError(f"task '{name}' is unknown; expected one of {', '.join(names())}")
   return TASKS[name]

@@ -20,10 +20,11 @@ from scipy.spatial.transform import Rotation
 from mash import env as env_lib
 from mash import layout
 from mash import robots
+from mash import tasks
 
 T1 = robots.load("booster_t1")
 REPO = Path(__file__).resolve().parents[1]
-CONFIGS = list(itertools.product(env_lib.TASKS, env_lib.PARTITIONS, (True, False), (True, False)))
+CONFIGS = list(itertools.product(tasks.names(), env_lib.PARTITIONS, (True, False), (True, False)))
 
 
 def _config(task="bipedal", partition="mash", agent_id=True, temporal_director=True, **kw):
@@ -182,7 +183,7 @@ def test_layout_needs_only_the_spec_and_the_config_fields():
 PHASE_OFFSET = {"left_leg": 0.0, "right_leg": 0.5, "left_arm": 0.5, "right_arm": 0.0}
 
 
-@pytest.fixture(scope="module", params=list(itertools.product(env_lib.TASKS, robots.names())),
+@pytest.fixture(scope="module", params=list(itertools.product(tasks.names(), robots.names())),
                 ids="-".join)
 def reset_env(request):
   """One env per task and robot and its reset state (jitted reset)."""
