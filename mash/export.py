@@ -273,7 +273,7 @@ def build_model(parts: PolicyParts) -> onnx.ModelProto:
   """The ONNX model of ``parts`` (see module docstring for inputs and outputs)."""
   env, cfg = parts.env, parts.env.config
   lay = layout(env)
-  J, A, L = lay.n_joints, lay.n_actions, lay.n_limbs
+  J, A = lay.n_joints, lay.n_actions
   g = _Graph()
 
   # Feature row [N, width].

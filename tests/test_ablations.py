@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import agents, env as env_lib, experiment, networks
+from mash import agents, experiment, networks
 
 
 @pytest.mark.parametrize("ablation", experiment.ABLATIONS)

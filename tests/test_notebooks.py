@@ -12,7 +12,6 @@ import shutil
 from pathlib import Path
 
 import nbformat
-import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
@@ -55,7 +54,7 @@ def test_mash_vs_ppo_notebook(smoke_run, tmp_path):
 
 
 def test_ablations_notebook(tmp_path):
-  nb = run_notebook("ablations.ipynb", {"TASK": "bipedal", "PRESET": "smoke", "SEEDS": 1,
+  run_notebook("ablations.ipynb", {"TASK": "bipedal", "PRESET": "smoke", "SEEDS": 1,
                                         "ABLATIONS": ["none"], "OUT": str(tmp_path / "abl"),
                                         "OVERRIDES": []}, tmp_path)
   assert (tmp_path / "abl" / "bipedal_none" / "progress.csv").is_file()

@@ -563,7 +563,6 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
   assert "signal SIGINT" in stdout and f"--resume {out}" in stdout, stdout
   assert "Traceback" not in stderr, stderr[-3000:]
   assert _iterations(out) == list(range(1, 6))  # the call in flight was finished, and only it
-  cfg = runs.load_config(out)
   assert runs.restore_run(out, smoke_trainer).step == 5
 
   resume = ["--resume", str(out), "--no-progress"]

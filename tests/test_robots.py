@@ -5,7 +5,6 @@ Parametrized over every shipped robot (``robots.names()``); none of these compil
 """
 
 import dataclasses
-import shutil
 import tomllib
 
 import jax

@@ -31,7 +31,6 @@ import pytest
 
 from mash import losses
 from mash import networks as nets
-from mash import train
 from mash.config import TrainConfig
 from mash.toy_env import make_toy_env
 

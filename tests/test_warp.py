@@ -9,7 +9,6 @@ few control steps, the penalty-pair contact forces the env reads from each imple
 contact layout, and that per-env model fields (domain randomization) reach Warp under ``vmap``.
 """
 
-import dataclasses
 import importlib.util
 import subprocess
 import sys
