@@ -434,6 +434,51 @@ def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
   assert compare.method_dir(out, "ppo") == out / "ppo" / "lr0.0003"
 
 
+def test_compare_evaluates_each_run_right_after_it_trains(smoke_run, tmp_path, monkeypatch):
+  """compare's whole plan with training and evaluation stood in for: the search trains and
+  evaluates each rate's seed 0 in turn, the tie goes to the smaller rate, the other seeds train
+  at it and each is evaluated before the next one trains; run again, it does nothing new."""
+  import shutil
+  import subprocess as subprocess_lib
+  from experiments import compare, evaluate
+  events = []
+
+  def fake_training(command):  # a finished run's records, as the CLI leaves them
+    out = Path(command[command.index("--out") + 1])
+    shutil.copytree(smoke_run, out, ignore=shutil.ignore_patterns("eval*"))
+    events.append(("train", out.relative_to(tmp_path).as_posix()))
+    return 0
+
+  def fake_evaluation(run_dir, cfg):
+    d = Path(run_dir)
+    shutil.copytree(smoke_run / "eval", d / "eval", dirs_exist_ok=True)
+    metrics = json.loads((d / "eval" / "metrics.json").read_text())
+    metrics["eval_config"]["num_episodes"] = cfg.num_episodes
+    (d / "eval" / "metrics.json").write_text(json.dumps(metrics))
+    events.append(("eval", d.relative_to(tmp_path).as_posix()))
+
+  if not (smoke_run / "eval" / "metrics.json").exists():
+    from mash import evaluation
+    evaluate.evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
+  compare.hip_trace(smoke_run)  # a clone's records: the trace, not the trajectories
+  monkeypatch.setattr(subprocess_lib, "call", fake_training)
+  monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)
+  argv = ["--preset", "smoke", "--seeds", "2", "--out", str(tmp_path / "cmp"), "--episodes", "4",
+          "--no-progress"]
+  compare.main(argv)
+  runs_in_order = [f"cmp/{a}/lr{lr}/seed{s}" for a, lr, s in (
+      ("mash", 0.0003, 0), ("mash", 0.001, 0), ("ppo", 0.0003, 0), ("ppo", 0.001, 0),
+      ("mash", 0.0003, 1), ("ppo", 0.0003, 1))]
+  assert events == [(what, d) for d in runs_in_order for what in ("train", "eval")]
+  tuning = json.loads((tmp_path / "cmp" / "tuning.json").read_text())
+  assert tuning["picked"] == {"mash": 3e-4, "ppo": 3e-4}  # equal rewards: the smaller rate
+  assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
+      "seed0", "seed1"]
+  events.clear()
+  compare.main(argv)
+  assert events == []
+
+
 def test_expected_duration_line_from_the_timed_calls():
   """Calls of 4 s and 6 s with 10 iterations each: median 5 s = 0.5 s per iteration (2 it/s);
   100 iterations left take 50 s, about 1 min."""
