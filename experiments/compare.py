@@ -4,10 +4,11 @@ Both methods get the same small tuning first: seed 0 at each of ``--learning-rat
 rule (the highest final paper-weight episode reward) picks each method's rate (``tuning.json``).
 Then both train on the same preset, budget and seeds, one run per method and seed, paired by seed
 (``OUT/<algo>/lr<picked>/seed<s>/``, seed 0 being the search's run; each a plain ``python -m
-experiments.<task>`` run with ``train.seed=s``, so on a CPU it uses both cores the same way). The command resumes: a
-finished seed is reused, an interrupted one continues from its checkpoint, so the runs can span
-several sittings; seeds run in pairs (MASH then PPO for seed 0, then seed 1, ...). Every run is
-evaluated right after it trains, while its checkpoint is at hand (``OUT/<algo>/lr<rate>/seed<s>/eval/``), and the report is rewritten after each pair:
+experiments.<task>`` run with ``train.seed=s``, so on a CPU it uses both cores the same way).
+The command resumes: a finished seed is reused, an interrupted one continues from its
+checkpoint, so the runs can span several sittings; seeds run in pairs (MASH then PPO for seed 0,
+then seed 1, ...). Every run is evaluated right after it trains, while its checkpoint is at hand
+(``OUT/<algo>/lr<rate>/seed<s>/eval/``), and the report is rewritten after each pair:
 ``report.md`` (the paper's metrics table with ours beside it, statistics over seeds),
 ``report.json``, ``reward_curves.png`` (paper-weight reward, mean and band over seeds) and
 ``hip_pitch.png``.

@@ -18,8 +18,8 @@ of 260 s and ``test_brax.py`` in 76 s instead of 121 s (fresh caches, 2 busy CPU
 compare runs of the same session with each other, never with a curve recorded outside it, so the
 level changes no verdict; the recipes' own runs keep XLA's defaults.
 
-The suite runs in two worker processes (pytest-xdist, ``-n 2 --dist loadgroup`` in
-``pyproject.toml``): compiling is single-threaded, so two workers keep both cores busy. Tests are
+The suite runs in two worker processes (pytest-xdist, ``-n 2 --dist loadgroup
+--no-loadscope-reorder`` in ``pyproject.toml``): compiling is single-threaded, so two workers keep both cores busy. Tests are
 grouped so that the smoke trainer, the costliest fixture, is compiled once per worker at most: the
 tests that train with it or change its run form one group, sent first to one worker; each other
 file is a group of its own, handed to whichever worker is free, in file order. The files whose
