@@ -387,7 +387,9 @@ def test_readme_table_comes_from_the_committed_reports():
   block = readme[start:readme.index(README_END, start) + len(README_END) + 1]
   dirs = block.splitlines()[0][len(README_BEGIN):].removesuffix("-->").split()
   assert dirs and all((repo / d / "report.json").is_file() for d in dirs)
-  assert block == readme_block(dirs, repo)
+  assert block == readme_block(dirs, repo), (
+      "the README's comparison table is not the reports': replace its block with the output "
+      f"of `python -m experiments.compare --readme-table {' '.join(dirs)}`")
 
 
 def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
