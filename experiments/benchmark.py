@@ -360,14 +360,12 @@ def main(argv=None) -> None:
   with common.user_errors():
     common.check_paths({"--out": args.out, "--dir": args.dir})
     _check_impl(args.impl, args.sweep)
-    from mash import env as env_lib, tasks
+    from mash import env as env_lib
     try:
       env_lib.check_config(env_lib.EnvConfig(robot=args.robot))
     except ValueError as e:
       raise common.UserError(f"--robot: {e}") from None
-    if args.task not in tasks.names():
-      raise common.UserError(f"task '{args.task}' is unknown; expected one of "
-                             f"{', '.join(tasks.names())}")
+    common.check_task(args.task)
     if args.batch is not None and not 0 <= args.batch <= MAX_BATCH:
       raise common.UserError(f"--batch must be a number of envs in [1, {MAX_BATCH}] (0: the "
                              f"default), got {args.batch}")

@@ -362,10 +362,7 @@ def main(argv=None) -> None:
                        or args.train_batch > MAX_BATCH):
       raise common.UserError(f'--train-batch must be a multiple of 4 in [4, {MAX_BATCH}], got '
                              f'{args.train_batch}')
-    from mash import tasks
-    if args.task not in tasks.names():
-      raise common.UserError(f"task '{args.task}' is unknown; expected one of "
-                             f"{', '.join(tasks.names())}")
+    common.check_task(args.task)
     if args.platform not in PLATFORMS:
       raise common.UserError(f"--platform '{args.platform}' is unknown; expected one of "
                              f"{', '.join(PLATFORMS)}")

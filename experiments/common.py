@@ -96,6 +96,15 @@ def check_path(path: str, flag: str) -> None:
     raise UserError(f"{flag} '{shown_path(path)}' cannot be used: {e}") from None
 
 
+def check_task(task: str) -> None:
+  """``--task``: one of the tasks (``mash.tasks``); a UserError naming them otherwise."""
+  from mash import tasks
+  try:
+    tasks.get(task)
+  except ValueError as e:
+    raise UserError(f"--task: {e}") from None
+
+
 def check_paths(paths: dict[str, str | None]) -> None:
   """:func:`check_path` on each ``{flag: path}`` given (a None is a flag left out)."""
   for flag, path in paths.items():
