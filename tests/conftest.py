@@ -122,6 +122,17 @@ def smoke_run(tmp_path_factory, smoke_config, smoke_trainer):
   return out
 
 
+
+@pytest.fixture
+def evaluated_smoke_run(smoke_run):
+  """``smoke_run`` with an evaluation in ``eval/``: the one a test wrote there, else a tiny one
+  (3 episodes of 1 s)."""
+  if not (smoke_run / 'eval' / 'metrics.json').exists():
+    from mash import evaluation
+    from experiments.evaluate import evaluate_run
+    evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
+  return smoke_run
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
   """Groups and orders the tests for the two workers (see the module docstring)."""

@@ -392,16 +392,13 @@ def test_readme_table_comes_from_the_committed_reports():
       f"of `python -m experiments.compare --readme-table {' '.join(dirs)}`")
 
 
-def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
+def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   """compare's plan per seed: nothing there -> new; a run stopped early -> resume; trained to the
   end -> done. Its report pairs the seeds evaluated for both methods."""
   import shutil
-  from mash import evaluation
   from experiments import compare
-  from experiments.evaluate import evaluate_run
+  smoke_run = evaluated_smoke_run
   assert compare.seed_state(tmp_path / "none", 10) == "new"
-  if not (smoke_run / "eval" / "metrics.json").exists():
-    evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
   out = tmp_path / "cmp"
   for algo, seeds in (("mash", (0, 1)), ("ppo", (0,))):
     for s in seeds:
@@ -436,13 +433,15 @@ def test_compare_resumes_seed_by_seed(smoke_run, tmp_path):
   assert compare.method_dir(out, "ppo") == out / "ppo" / "lr0.0003"
 
 
-def test_compare_evaluates_each_run_right_after_it_trains(smoke_run, tmp_path, monkeypatch):
+def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, tmp_path,
+                                                         monkeypatch):
   """compare's whole plan with training and evaluation stood in for: the search trains and
   evaluates each rate's seed 0 in turn, the tie goes to the smaller rate, the other seeds train
   at it and each is evaluated before the next one trains; run again, it does nothing new."""
   import shutil
   import subprocess as subprocess_lib
   from experiments import compare, evaluate
+  smoke_run = evaluated_smoke_run
   events = []
 
   def fake_training(command):  # a finished run's records, as the CLI leaves them
@@ -459,9 +458,6 @@ def test_compare_evaluates_each_run_right_after_it_trains(smoke_run, tmp_path, m
     (d / "eval" / "metrics.json").write_text(json.dumps(metrics))
     events.append(("eval", d.relative_to(tmp_path).as_posix()))
 
-  if not (smoke_run / "eval" / "metrics.json").exists():
-    from mash import evaluation
-    evaluate.evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
   compare.hip_trace(smoke_run)  # a clone's records: the trace, not the trajectories
   monkeypatch.setattr(subprocess_lib, "call", fake_training)
   monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)

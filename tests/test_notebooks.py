@@ -39,11 +39,8 @@ def test_notebooks_are_stored_without_outputs():
     assert any("parameters" in c.metadata.get("tags", []) for c in nb.cells), path.name
 
 
-def test_mash_vs_ppo_notebook(smoke_run, tmp_path):
-  from mash import evaluation
-  from experiments.evaluate import evaluate_run
-  if not (smoke_run / "eval" / "metrics.json").exists():  # the same tiny evaluation as test_experiments
-    evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
+def test_mash_vs_ppo_notebook(evaluated_smoke_run, tmp_path):
+  smoke_run = evaluated_smoke_run
   root = tmp_path / "compare"
   for algo in ("mash", "ppo"):  # the smoke run stands in for both methods: the plumbing is tested
     shutil.copytree(smoke_run, root / algo)
