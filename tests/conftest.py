@@ -133,6 +133,18 @@ def evaluated_smoke_run(smoke_run):
     evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
   return smoke_run
 
+
+@pytest.fixture
+def skip_for_missing_gl():
+  """A function that skips the calling test because no headless OpenGL library could render;
+  its argument says what failed. These are system libraries, not Python packages, so the message
+  names them."""
+  def skip(reason: str) -> None:
+    pytest.skip(f"no headless OpenGL to render with: {reason} (a system library, not a Python "
+                "package: on Debian, apt install libegl1 libgl1-mesa-dri, or libosmesa6)")
+  return skip
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items):
   """Groups and orders the tests for the two workers (see the module docstring)."""

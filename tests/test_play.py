@@ -24,14 +24,13 @@ def test_shipped_policies_are_listed():
   assert "t1_bipedal_mash" in play.shipped_policies()
 
 
-def test_play_headless_writes_the_video(tmp_path):
+def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
   """Two seconds of the shipped T1 policy at 0.4 m/s, in a subprocess (MUJOCO_GL is chosen before
   mujoco is imported): it walks, says so, and the MP4 is there."""
   from experiments.sim2sim import headless_gl
   backend, reason = headless_gl()
-  if backend is None:  # a system library, as for sim2sim's video test: the reason says which
-    pytest.skip(f"no headless OpenGL to render with: {reason} (a system library, not a Python "
-                "package: on Debian, apt install libegl1 libgl1-mesa-dri, or libosmesa6)")
+  if backend is None:
+    skip_for_missing_gl(reason)
   video = tmp_path / "walk.mp4"
   out = subprocess.run([sys.executable, "-m", "experiments.play", "--policy", "t1_bipedal_mash",
                         "--seconds", "2", "--video", str(video)], capture_output=True, text=True,
