@@ -122,7 +122,6 @@ def smoke_run(tmp_path_factory, smoke_config, smoke_trainer):
   return out
 
 
-
 @pytest.fixture
 def evaluated_smoke_run(smoke_run):
   """``smoke_run`` with an evaluation in ``eval/``: the one a test wrote there, else a tiny one
