@@ -6,7 +6,8 @@ Then both train on the same preset, budget and seeds, one run per method and see
 (``OUT/<algo>/lr<picked>/seed<s>/``, seed 0 being the search's run; each a plain ``python -m
 experiments.<task>`` run with ``train.seed=s``, so on a CPU it uses both cores the same way).
 The command resumes: a finished seed is reused, an interrupted one continues from its
-checkpoint, so the runs can span several sittings; seeds run in pairs (MASH then PPO for seed 0,
+checkpoint (or, when its checkpoints are not on this machine, trains again from the start, its
+records moved to ``cut_off/``), so the runs can span several sittings; seeds run in pairs (MASH then PPO for seed 0,
 then seed 1, ...). Every run is evaluated right after it trains, while its checkpoint is at hand
 (``OUT/<algo>/lr<rate>/seed<s>/eval/``), and the report is rewritten after each pair:
 ``report.md`` (the paper's metrics table with ours beside it, statistics over seeds),
@@ -253,8 +254,10 @@ def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:
 
 
 def seed_state(run_dir: Path, num_iterations: int) -> str:
-  """``'done'`` (trained to ``num_iterations``), ``'resume'`` (a run that stopped early) or
-  ``'new'`` (nothing there yet) for one seed's run directory."""
+  """``'done'`` (trained to ``num_iterations``), ``'resume'`` (a run that stopped early, with a
+  checkpoint to go on from), ``'restart'`` (one that stopped early whose checkpoints are not
+  here: a clone or a fresh machine holds the committed records only) or ``'new'`` (nothing
+  there yet) for one seed's run directory."""
   if not (run_dir / "config.json").is_file():
     return "new"
   summary = run_dir / "summary.json"
@@ -262,7 +265,21 @@ def seed_state(run_dir: Path, num_iterations: int) -> str:
     s = json.loads(summary.read_text())
     if not s.get("interrupted") and s.get("iterations", 0) >= num_iterations:
       return "done"
-  return "resume"
+  checkpoints = run_dir / "checkpoints"
+  if checkpoints.is_dir() and any(c.name.isdigit() for c in checkpoints.iterdir()):
+    return "resume"
+  return "restart"
+
+
+def set_aside(run_dir: Path) -> Path:
+  """Moves a cut-off seed's records to ``<its parent>/cut_off/<name>_<k>/`` (the first free
+  ``k``), out of the report's way and never deleted; returns where they went."""
+  k = 0
+  while (dest := run_dir.parent / "cut_off" / f"{run_dir.name}_{k}").exists():
+    k += 1
+  dest.parent.mkdir(parents=True, exist_ok=True)
+  run_dir.rename(dest)
+  return dest
 
 
 def lr_dir(out: Path, algo: str, lr: float) -> Path:
@@ -457,8 +474,11 @@ def main(argv=None) -> None:
     def train_seed(algo: str, cfg, lr: float, seed: int) -> Path:
       d = lr_dir(out, algo, lr) / f"seed{seed}"
       state = seed_state(d, cfg.train.num_iterations)
-      what = {"done": "trained; reusing it", "resume": "resuming", "new": "training"}[state]
+      what = {"done": "trained; reusing it", "resume": "resuming", "new": "training",
+              "restart": "stopped early with no checkpoint here; training it again"}[state]
       print(f"[{algo} lr {lr:g} seed {seed}] {what}", flush=True)
+      if state == "restart":
+        print(f"[{algo} lr {lr:g} seed {seed}] its records moved to {set_aside(d)}", flush=True)
       if state != "done":
         command = [sys.executable, "-m", f"experiments.{args.task}"]
         if state == "resume":
@@ -481,6 +501,7 @@ def main(argv=None) -> None:
       if not fresh:
         print(f"[{algo} lr {lr:g} seed {seed}] evaluating on {args.episodes} episodes", flush=True)
         evaluate_run(str(d), eval_cfg)
+      hip_trace(d)  # the few KiB of the hip-pitch plot that the committed records keep
       return d
 
     # The same small search for both methods: seed 0 at each rate, the same rule picks.

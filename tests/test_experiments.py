@@ -393,8 +393,8 @@ def test_readme_table_comes_from_the_committed_reports():
 
 
 def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
-  """compare's plan per seed: nothing there -> new; a run stopped early -> resume; trained to the
-  end -> done. Its report pairs the seeds evaluated for both methods."""
+  """compare's plan per seed: nothing there -> new; a run stopped early -> resume, or restart
+  when its checkpoints are not there; trained to the end -> done. Its report pairs the seeds evaluated for both methods."""
   import shutil
   from experiments import compare
   smoke_run = evaluated_smoke_run
@@ -408,6 +408,13 @@ def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   summary = out / "mash" / "seed1" / "summary.json"
   summary.write_text(json.dumps({**json.loads(summary.read_text()), "interrupted": True}))
   assert compare.seed_state(out / "mash" / "seed1", 10) == "resume"
+  # Cut off with its checkpoints on another machine: trained again, its records kept aside.
+  shutil.copytree(out / "mash" / "seed1", out / "mash" / "seed2",
+                  ignore=shutil.ignore_patterns("checkpoints"))
+  assert compare.seed_state(out / "mash" / "seed2", 10) == "restart"
+  assert compare.set_aside(out / "mash" / "seed2") == out / "mash" / "cut_off" / "seed2_0"
+  assert (out / "mash" / "cut_off" / "seed2_0" / "config.json").is_file()
+  assert compare.seed_state(out / "mash" / "seed2", 10) == "new"
   assert [d.name for d in compare.seed_dirs(out / "mash")] == ["seed0", "seed1"]
   md, data, dirs = compare.build_from_dirs("bipedal", out, "smoke")
   assert data["seeds_paired"] == ["seed0"] and [d.name for d in dirs["ppo"]] == ["seed0"]
