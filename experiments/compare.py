@@ -313,6 +313,35 @@ def _seed_key(d: Path) -> str:
   return d.name if d.name.startswith("seed") and d.name[4:].isdigit() else "seed0"
 
 
+def per_seed_table(results: dict, convergence: dict | None, dirs: dict, paired: list[str]) -> str:
+  """The report's "Per seed" section: each paired seed's evaluation, T_conv (the common
+  threshold, middle window) and training wall time (``summary.json``), MASH then PPO."""
+  arms = all("C_limb_arm_leg" in m for res in results.values() for m in res["per_seed"])
+  w = convergence["windows"][len(convergence["windows"]) // 2] if convergence else None
+  head = ["seed", "method", "falls", "forward speed (m/s)", "S_action", "S_torso", "C_limb (rad)"]
+  head += ["C_limb arm-leg (rad)"] * arms + ([f"T_conv (window {w})"] if w else [])
+  head += ["training wall (s)"]
+  lines = ["", "## Per seed", "",
+           "Each seed's evaluation (`<algo>/lr<rate>/seed<s>/eval/metrics.json`); T_conv at the "
+           "common threshold; the wall time includes whatever shared the cores.", "",
+           "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+  for i, name in enumerate(paired):
+    for algo in ("mash", "ppo"):
+      m = results[algo]["per_seed"][i]
+      summary = dirs[algo][i] / "summary.json"
+      wall = json.loads(summary.read_text()).get("wall_s") if summary.is_file() else None
+      row = [name[4:], NAMES[algo], f"{100 * m['fall_rate']:.1f} %", f"{m['forward_speed']:.3f}",
+             f"{m['S_action']:.3f}", f"{m['S_torso']:.3f}", f"{m['C_limb']:.3f}"]
+      if arms:
+        row.append(f"{m['C_limb_arm_leg']:.3f}")
+      if w:
+        t = convergence["t_conv"][algo][w][i]
+        row.append("not reached" if t is None else str(t))
+      row.append("n/a" if wall is None else f"{wall:.0f}")
+      lines.append("| " + " | ".join(row) + " |")
+  return "\n".join(lines) + "\n"
+
+
 def build_from_dirs(task: str, out: Path, preset: str) -> tuple[str, dict, dict]:
   """The report of the seeds evaluated so far in ``out/mash/`` and ``out/ppo/``, paired by seed:
   ``(markdown, data, {algo: [seed run directories]})``."""
@@ -330,6 +359,7 @@ def build_from_dirs(task: str, out: Path, preset: str) -> tuple[str, dict, dict]
   convergence = metrics_lib.common_threshold_t_conv({a: c[:, :n_it] for a, c in curves.items()})
   md, data = build_report(task, results, preset, len(paired), convergence)
   data["seeds_paired"] = paired
+  md += per_seed_table(results, convergence, dirs, paired)
   tuning = Path(out) / "tuning.json"
   if tuning.is_file():
     data["tuning"] = json.loads(tuning.read_text())

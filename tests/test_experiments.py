@@ -419,6 +419,8 @@ def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   md, data, dirs = compare.build_from_dirs("bipedal", out, "smoke")
   assert data["seeds_paired"] == ["seed0"] and [d.name for d in dirs["ppo"]] == ["seed0"]
   assert "T_conv (paper reward reaches" in md
+  wall = json.loads((out / "mash" / "seed0" / "summary.json").read_text())["wall_s"]
+  assert "## Per seed" in md and "| 0 | MASH | " in md and f" | {wall:.0f} |" in md
   compare.report("bipedal", out, "smoke")
   for name in ("report.md", "report.json", "reward_curves.png", "hip_pitch.png"):
     assert (out / name).stat().st_size > 0
