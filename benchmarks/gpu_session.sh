@@ -4,7 +4,7 @@
 #      a checkpoint and exits 143; a shorter run than the preset is then a prefix of its curve);
 #   2. its evaluation (DR on, 0.4 m/s), the ONNX export and sim-to-sim in MuJoCo C;
 #   3. the benchmark (physics, env step, MASH / our PPO / Brax PPO training, compile) at BATCH, or
-#      only BENCH_STAGES of it;
+#      only BENCH_STAGES of it, once per MJX implementation of IMPLS (jax, warp), each within BENCH_S;
 #   4. the batch sweep, for at most SWEEP_S and whatever time is left before DEADLINE_S.
 # A stage whose limit is 0 is skipped (sim2sim exports the policy itself when EXPORT_S=0).
 # Every stage has its own time limit and log; a failing stage does not stop the next. Results are
@@ -25,6 +25,7 @@ EXPORT_S=${EXPORT_S:-45}
 SIM2SIM_S=${SIM2SIM_S:-$EXPORT_S}
 SWEEP_S=${SWEEP_S:-600}
 BENCH_STAGES=${BENCH_STAGES:-physics,env,mash,ppo,brax_ppo}
+IMPLS=${IMPLS:-jax}
 DEADLINE_S=${DEADLINE_S:-545}
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
 EVAL_ARGS=${EVAL_ARGS:-}
@@ -59,16 +60,18 @@ grep -h "iteration" "$WORK/logs/train.log" | tail -n 2
 stage evaluate "$EVAL_S" $PY -m experiments.evaluate --run "$WORK/run" $EVAL_ARGS
 stage export "$EXPORT_S" $PY -m experiments.export --run "$WORK/run"
 stage sim2sim "$SIM2SIM_S" $PY -m experiments.sim2sim --run "$WORK/run" $SIM2SIM_ARGS
-stage benchmark "$BENCH_S" $PY -m experiments.benchmark --quick --batch "$BATCH" \
-  --stages "$BENCH_STAGES" --out "$WORK/benchmark.json"
+for impl in ${IMPLS//,/ }; do
+  stage "benchmark_$impl" "$BENCH_S" $PY -m experiments.benchmark --quick --batch "$BATCH" \
+    --stages "$BENCH_STAGES" --impl "$impl" --out "$WORK/benchmark_$impl.json"
+done
 stage sweep "$SWEEP_S" $PY -m experiments.benchmark --sweep batch --batches "$BATCHES" --dir "$WORK"
 
 cp "$WORK/logs/machine.txt" "$WORK/run/" 2>/dev/null
 tar -czf "$OUT/gpu_results.tar.gz" -C "$WORK" --exclude=run/checkpoints logs \
-  $(cd "$WORK" && ls -d run benchmark.json scaling_batch.* 2>/dev/null)
+  $(cd "$WORK" && ls -d run benchmark_*.json scaling_batch.* 2>/dev/null)
 last=$(latest_step "$WORK/run")
 [ -n "$last" ] && tar -czf "$OUT/checkpoint.tar.gz" -C "$WORK" "run/checkpoints/$last"
 ls -la "$OUT"
 [ -f "$WORK/run/eval/metrics.json" ] && cat "$WORK/run/eval/metrics.json" | head -c 1500
-echo; [ -f "$WORK/benchmark.json" ] && cat "$WORK/benchmark.json" | head -c 2000
+for f in "$WORK"/benchmark_*.json; do [ -f "$f" ] && echo && head -c 2000 "$f"; done
 echo "== done at $(elapsed)s"
