@@ -13,6 +13,12 @@ then seed 1, ...). Every run is evaluated right after it trains, while its check
 ``report.md`` (the paper's metrics table with ours beside it, statistics over seeds),
 ``report.json``, ``reward_curves.png`` (paper-weight reward, mean and band over seeds) and
 ``hip_pitch.png``.
+
+``--seeds-at-once K`` (for a GPU) trains up to K consecutive seeds of a method that have no run yet
+in one vmapped call (``OUT/<algo>/lr<rate>/group_seeds<a>-<b>/``, seed ``a + i`` of it being the
+run a single ``train.seed=a+i`` run would be), evaluates them together, then writes each seed's
+records into ``seed<s>/`` as a single run leaves them (:func:`split_group`), so the report, a
+resumed comparison and a CPU finishing it later treat them alike.
 """
 
 from __future__ import annotations
@@ -282,6 +288,75 @@ def set_aside(run_dir: Path) -> Path:
   return dest
 
 
+def group_dir(parent: Path, seeds: list[int]) -> Path:
+  """Where seeds ``seeds`` (consecutive) of one method train together: ``group_seeds<a>-<b>/``
+  (a name that :func:`seed_dirs` does not take for a seed's run)."""
+  return Path(parent) / f"group_seeds{seeds[0]}-{seeds[-1]}"
+
+
+def split_group(group: Path, seeds: list[int]) -> list[Path]:
+  """Writes each seed of an evaluated multi-seed run ``group`` (its ``i``-th seed being seed
+  ``seeds[i]``) into ``<group's parent>/seed<s>/`` with the records a single run of that seed
+  leaves: ``config.json`` and ``summary.json`` (the group's, plus ``group`` and ``group_index``;
+  its ``wall_s`` covers all the group's seeds), ``progress_seeds.csv`` and ``progress.csv`` (the
+  seed's rows, seed column 0) and ``eval/`` (``metrics.json`` of that seed alone,
+  ``hip_trace.npz``, ``hip_pitch.png``). Returns the seed directories."""
+  import csv
+  from experiments.evaluate import plot_hip_pitch
+  metrics = json.loads((group / "eval" / "metrics.json").read_text())
+  if len(metrics["per_seed"]) != len(seeds):
+    raise common.UserError(f"'{group}' has {len(metrics['per_seed'])} evaluated seeds, "
+                           f"expected {len(seeds)}")
+  config = (group / "config.json").read_text()
+  summary = json.loads((group / "summary.json").read_text())
+  with open(group / "progress_seeds.csv", newline="") as f:
+    reader = csv.DictReader(f)
+    fields, rows = reader.fieldnames, list(reader)
+  trajectories = np.load(group / "eval" / "trajectories.npz")
+  dirs = []
+  for i, seed in enumerate(seeds):
+    d = group.parent / f"seed{seed}"
+    (d / "eval").mkdir(parents=True, exist_ok=True)
+    (d / "config.json").write_text(config)
+    (d / "summary.json").write_text(json.dumps(
+        {**summary, "group": group.name, "group_index": i}, indent=2))
+    mine = [{**r, "seed": "0"} for r in rows if int(float(r["seed"])) == i]
+    for name, columns in (("progress_seeds.csv", fields),
+                          ("progress.csv", [c for c in fields if c != "seed"])):
+      with open(d / name, "w", newline="") as f:
+        writer = csv.DictWriter(f, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(mine)
+    m = metrics["per_seed"][i]
+    alone = {k: m[k] for k in metrics["std"] if k in m}
+    alone.update(command_vx=metrics["command_vx"], iteration=metrics["iteration"],
+                 std={k: 0.0 for k in alone}, fall_rate_by_friction=m["fall_rate_by_friction"],
+                 all_episodes=m["all_episodes"], per_seed=[m], eval_config=metrics["eval_config"],
+                 smoothing_window=metrics["smoothing_window"])
+    alone["T_conv"] = m["T_conv"]
+    (d / "eval" / "metrics.json").write_text(json.dumps(alone, indent=2))
+    picked = trajectories["seed"] == i
+    traj = {k: trajectories[k][picked] for k in trajectories.files if k != "dt"}
+    dt = float(trajectories["dt"])
+    n = min(int(3.0 / dt), traj["hip_pitch"].shape[1])
+    np.savez(d / "eval" / "hip_trace.npz", dt=trajectories["dt"],
+             hip_pitch=traj["hip_pitch"][0, :n], hip_pitch_ref=traj["hip_pitch_ref"][0, :n])
+    plot_hip_pitch(traj, dt, d / "eval" / "hip_pitch.png", json.loads(config)["algo"])
+    dirs.append(d)
+  return dirs
+
+
+def consecutive_runs(seeds: list[int], most: int) -> list[list[int]]:
+  """``seeds`` (ascending) cut into runs of consecutive seeds of at most ``most`` each."""
+  groups: list[list[int]] = []
+  for s in seeds:
+    if groups and s == groups[-1][-1] + 1 and len(groups[-1]) < most:
+      groups[-1].append(s)
+    else:
+      groups.append([s])
+  return groups
+
+
 def lr_dir(out: Path, algo: str, lr: float) -> Path:
   """Where a method's runs at one learning rate live: ``out/<algo>/lr<lr>/``."""
   return Path(out) / algo / f"lr{lr:g}"
@@ -458,6 +533,9 @@ def main(argv=None) -> None:
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
                  help="a shipped robot (booster_t1, unitree_g1) or a robot file (default: "
                       "booster_t1; the same as --set env.robot=...)")
+  p.add_argument("--seeds-at-once", type=int, default=1, metavar="K",
+                 help="train up to K seeds of a method without a run yet in one vmapped call "
+                      "(for a GPU; default 1: one run per seed)")
   p.add_argument("--no-progress", action="store_true")
   p.add_argument("--readme-table", nargs="+", default=None, metavar="DIR",
                  help="print the README's table from these comparison folders' report.json "
@@ -476,6 +554,8 @@ def main(argv=None) -> None:
     common.check_task(args.task)
     if args.seeds < 1 or args.episodes < 1 or not args.eval_seconds > 0:
       raise common.UserError("--seeds and --episodes must be >= 1 and --eval-seconds > 0")
+    if args.seeds_at_once < 1:
+      raise common.UserError(f"--seeds-at-once must be >= 1, got {args.seeds_at_once}")
     try:
       evaluation.check_config(
           evaluation.EvalConfig(num_episodes=args.episodes, episode_s=args.eval_seconds),
@@ -501,42 +581,68 @@ def main(argv=None) -> None:
           flush=True)
     eval_cfg = evaluation.EvalConfig(num_episodes=args.episodes, episode_s=args.eval_seconds)
 
-    def train_seed(algo: str, cfg, lr: float, seed: int) -> Path:
-      d = lr_dir(out, algo, lr) / f"seed{seed}"
-      state = seed_state(d, cfg.train.num_iterations)
+    def train_run(algo: str, lr: float, d: Path, seeds: list[int]) -> Path:
+      """Trains the run ``d`` of ``seeds`` (one seed, or consecutive ones in one vmapped call),
+      or resumes or reuses it, then evaluates it unless its evaluation is there."""
+      which = f"seed {seeds[0]}" + (f"-{seeds[-1]}" if len(seeds) > 1 else "")
+      label = f"[{algo} lr {lr:g} {which}]"
+      state = seed_state(d, cfgs[algo].train.num_iterations)
       what = {"done": "trained; reusing it", "resume": "resuming", "new": "training",
               "restart": "stopped early with no checkpoint here; training it again"}[state]
-      print(f"[{algo} lr {lr:g} seed {seed}] {what}", flush=True)
+      print(f"{label} {what}", flush=True)
       if state == "restart":
-        print(f"[{algo} lr {lr:g} seed {seed}] its records moved to {set_aside(d)}", flush=True)
+        print(f"{label} its records moved to {set_aside(d)}", flush=True)
       if state != "done":
         command = [sys.executable, "-m", f"experiments.{args.task}"]
         if state == "resume":
           command += ["--resume", str(d)]
         else:
           command += ["--algo", algo, "--preset", preset, "--out", str(d),
-                      "--set", f"train.seed={seed}", "--set", f"train.learning_rate={lr:g}"]
+                      "--set", f"train.seed={seeds[0]}", "--set", f"train.learning_rate={lr:g}"]
+          command += ["--seeds", str(len(seeds))] if len(seeds) > 1 else []
           command += [x for o in args.set for x in ("--set", o)]
         if args.no_progress:
           command.append("--no-progress")
         code = subprocess.call(command)
         if code != 0:
-          raise common.UserError(f"the {algo} run of seed {seed} stopped with status {code}; "
-                                 f"run the same command again to resume it ({d})")
+          raise common.UserError(f"the {algo} run of {which} stopped with status {code}; run "
+                                 f"the same command again to resume it ({d})")
       # Right after training, while the checkpoint is on this machine: checkpoints are not
       # kept in git, so a later session or a clone may hold only the records.
       metrics_file = d / "eval" / "metrics.json"
       fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
                .get("eval_config", {}).get("num_episodes") == args.episodes)
       if not fresh:
-        print(f"[{algo} lr {lr:g} seed {seed}] evaluating on {args.episodes} episodes", flush=True)
+        print(f"{label} evaluating on {args.episodes} episodes", flush=True)
         evaluate_run(str(d), eval_cfg)
+      return d
+
+    def train_seed(algo: str, lr: float, seed: int) -> Path:
+      d = train_run(algo, lr, lr_dir(out, algo, lr) / f"seed{seed}", [seed])
       hip_trace(d)  # the few KiB of the hip-pitch plot that the committed records keep
       return d
 
+    def train_block(algo: str, lr: float, block: list[int]) -> None:
+      """Seeds ``block`` of one method: those without a run yet train together, up to
+      ``--seeds-at-once`` consecutive ones per call, and are split into their ``seed<s>/``;
+      the rest as single runs (reused when done, resumed when stopped early)."""
+      parent = lr_dir(out, algo, lr)
+      n_it = cfgs[algo].train.num_iterations
+      pending = [s for s in block if seed_state(parent / f"seed{s}", n_it) in ("new", "restart")]
+      for group in consecutive_runs(pending, args.seeds_at_once):
+        if len(group) == 1:
+          continue
+        for s in group:
+          if (parent / f"seed{s}" / "config.json").is_file():
+            print(f"[{algo} lr {lr:g} seed {s}] its records moved to "
+                  f"{set_aside(parent / f'seed{s}')}", flush=True)
+        split_group(train_run(algo, lr, group_dir(parent, group), group), group)
+      for s in block:
+        train_seed(algo, lr, s)
+
     # The same small search for both methods: seed 0 at each rate, the same rule picks.
-    finals = {algo: {lr: final_reward(train_seed(algo, cfg, lr, 0)) for lr in learning_rates}
-              for algo, cfg in cfgs.items()}
+    finals = {algo: {lr: final_reward(train_seed(algo, lr, 0)) for lr in learning_rates}
+              for algo in cfgs}
     picked = pick_learning_rates(finals)
     (out / "tuning.json").write_text(json.dumps({
         "learning_rates": learning_rates, "seed": 0, "picked": picked,
@@ -545,11 +651,12 @@ def main(argv=None) -> None:
         indent=2))
     print(f"learning rates picked by the search: MASH {picked['mash']:g}, PPO {picked['ppo']:g}",
           flush=True)
-    for seed in range(args.seeds):
-      for algo, cfg in cfgs.items():
-        train_seed(algo, cfg, picked[algo], seed)
+    k = args.seeds_at_once
+    for block in (list(range(a, min(a + k, args.seeds))) for a in range(0, args.seeds, k)):
+      for algo in cfgs:
+        train_block(algo, picked[algo], block)
       md = report(args.task, out, preset)
-      print(f"report after {seed + 1} paired seed(s): {out}/report.md", flush=True)
+      print(f"report after {block[-1] + 1} paired seed(s): {out}/report.md", flush=True)
     print(md)
     print(f"wrote {out}/report.md, report.json, reward_curves.png, hip_pitch.png")
 

@@ -121,7 +121,8 @@ ENTRIES: dict[str, tuple[Callable, tuple, tuple]] = {
     "compare": (compare.main, (
         ("--task", "bipedal|armswing|swim"), ("--seeds", "int"), ("--preset", "smoke|cpu|huge"),
         ("--out", "out"), ("--episodes", "int"), ("--eval-seconds", "float"), ("--set", "set"),
-        ("--learning-rates", "1e-3,3e-4|3e-4|1e-3|nan,1e-3"), ("--no-progress", None)),
+        ("--learning-rates", "1e-3,3e-4|3e-4|1e-3|nan,1e-3"), ("--seeds-at-once", "int"),
+        ("--no-progress", None)),
         ("--preset",)),
     "benchmark": (benchmark.main, (
         ("--quick", None), ("--batch", "int"), ("--task", "bipedal|armswing|swim"),

@@ -486,6 +486,79 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   assert events == []
 
 
+def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_path,
+                                                       monkeypatch):
+  """``--seeds-at-once 3`` with training and evaluation stood in for: after the search, seeds 1
+  and 2 of each method train in one call (``--seeds 2``, ``train.seed=1``) and are evaluated
+  together, then each gets its ``seed<s>/`` records (its own curve rows, metrics and hip trace)
+  and the report pairs seeds 0-2; run again, it does nothing new."""
+  import csv
+  import shutil
+  import subprocess as subprocess_lib
+  from experiments import compare, evaluate
+  smoke_run = evaluated_smoke_run
+  events = []
+
+  def fake_training(command):  # a finished run; a group's seed i has reward + 100 i
+    out = Path(command[command.index("--out") + 1])
+    seeds = int(command[command.index("--seeds") + 1]) if "--seeds" in command else 1
+    shutil.copytree(smoke_run, out, ignore=shutil.ignore_patterns("eval*"))
+    with open(out / "progress_seeds.csv", newline="") as f:
+      reader = csv.DictReader(f)
+      fields, rows = reader.fieldnames, [r for r in reader if float(r["seed"]) == 0]
+    with open(out / "progress_seeds.csv", "w", newline="") as f:
+      writer = csv.DictWriter(f, fields)
+      writer.writeheader()
+      for i in range(seeds):
+        writer.writerows({**r, "seed": str(i), "paper_episode_reward":
+                          str(float(r["paper_episode_reward"]) + 100 * i)} for r in rows)
+    events.append(("train", out.relative_to(tmp_path).as_posix(),
+                   command[command.index("--set") + 1], seeds))
+    return 0
+
+  def fake_evaluation(run_dir, cfg):  # a group's seed i falls in 0.01 + 0.1 i of the episodes
+    d = Path(run_dir)
+    shutil.copytree(smoke_run / "eval", d / "eval", dirs_exist_ok=True)
+    metrics = json.loads((d / "eval" / "metrics.json").read_text())
+    metrics["eval_config"]["num_episodes"] = cfg.num_episodes
+    if d.name.startswith("group_"):
+      one = metrics["per_seed"][0]
+      metrics["per_seed"] = [{**one, "fall_rate": 0.01 + 0.1 * i} for i in range(2)]
+      tr = dict(np.load(d / "eval" / "trajectories.npz"))
+      both = {k: np.concatenate([v, v]) for k, v in tr.items() if k != "dt"}
+      both["seed"] = np.repeat([0, 1], len(tr["seed"]))
+      np.savez(d / "eval" / "trajectories.npz", dt=tr["dt"], **both)
+    (d / "eval" / "metrics.json").write_text(json.dumps(metrics))
+    events.append(("eval", d.relative_to(tmp_path).as_posix()))
+
+  monkeypatch.setattr(subprocess_lib, "call", fake_training)
+  monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)
+  argv = ["--preset", "smoke", "--seeds", "3", "--seeds-at-once", "3", "--out",
+          str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"]
+  compare.main(argv)
+  assert events[8:] == [
+      ("train", "cmp/mash/lr0.0003/group_seeds1-2", "train.seed=1", 2),
+      ("eval", "cmp/mash/lr0.0003/group_seeds1-2"),
+      ("train", "cmp/ppo/lr0.0003/group_seeds1-2", "train.seed=1", 2),
+      ("eval", "cmp/ppo/lr0.0003/group_seeds1-2")]
+  mash = tmp_path / "cmp" / "mash" / "lr0.0003"
+  base = compare.method_curves(mash / "seed0")[1][0]
+  for s in (1, 2):
+    d = mash / f"seed{s}"
+    assert compare.seed_state(d, 10) == "done"
+    summary = json.loads((d / "summary.json").read_text())
+    assert summary["group"] == "group_seeds1-2" and summary["group_index"] == s - 1
+    np.testing.assert_allclose(compare.method_curves(d)[1], [base + 100 * (s - 1)], rtol=1e-6)
+    metrics = json.loads((d / "eval" / "metrics.json").read_text())
+    assert metrics["fall_rate"] == metrics["per_seed"][0]["fall_rate"] == 0.01 + 0.1 * (s - 1)
+    assert len(metrics["per_seed"]) == 1 and (d / "eval" / "hip_trace.npz").is_file()
+  assert [d.name for d in compare.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
+  assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
+      "seed0", "seed1", "seed2"]
+  events.clear()
+  compare.main(argv)
+  assert events == []
+
 def test_expected_duration_line_from_the_timed_calls():
   """Calls of 4 s and 6 s with 10 iterations each: median 5 s = 0.5 s per iteration (2 it/s);
   100 iterations left take 50 s, about 1 min."""
