@@ -15,8 +15,9 @@ then seed 1, ...). Every run is evaluated right after it trains, while its check
 ``hip_pitch.png``.
 
 ``--seeds-at-once K`` (for a GPU) trains up to K consecutive seeds of a method that have no run yet
-in one vmapped call (``OUT/<algo>/lr<rate>/group_seeds<a>-<b>/``, seed ``a + i`` of it being the
-run a single ``train.seed=a+i`` run would be), evaluates them together, then writes each seed's
+in one vmapped call (``OUT/<algo>/lr<rate>/group_seeds<a>-<b>/``, its ``i``-th seed keyed from
+``a + i``: the same recipe and seed, not the same numbers as a single run of that seed, which
+draws its keys per process), evaluates them together, then writes each seed's
 records into ``seed<s>/`` as a single run leaves them (:func:`split_group`), so the report, a
 resumed comparison and a CPU finishing it later treat them alike.
 """
@@ -651,8 +652,10 @@ def main(argv=None) -> None:
         indent=2))
     print(f"learning rates picked by the search: MASH {picked['mash']:g}, PPO {picked['ppo']:g}",
           flush=True)
+    # Seed 0 is the search's run; the others go in blocks of --seeds-at-once.
     k = args.seeds_at_once
-    for block in (list(range(a, min(a + k, args.seeds))) for a in range(0, args.seeds, k)):
+    blocks = [[0]] + [list(range(a, min(a + k, args.seeds))) for a in range(1, args.seeds, k)]
+    for block in blocks:
       for algo in cfgs:
         train_block(algo, picked[algo], block)
       md = report(args.task, out, preset)

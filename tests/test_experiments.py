@@ -488,7 +488,7 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
 
 def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_path,
                                                        monkeypatch):
-  """``--seeds-at-once 3`` with training and evaluation stood in for: after the search, seeds 1
+  """``--seeds-at-once 2`` with training and evaluation stood in for: after the search, seeds 1
   and 2 of each method train in one call (``--seeds 2``, ``train.seed=1``) and are evaluated
   together, then each gets its ``seed<s>/`` records (its own curve rows, metrics and hip trace)
   and the report pairs seeds 0-2; run again, it does nothing new."""
@@ -533,7 +533,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
 
   monkeypatch.setattr(subprocess_lib, "call", fake_training)
   monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)
-  argv = ["--preset", "smoke", "--seeds", "3", "--seeds-at-once", "3", "--out",
+  argv = ["--preset", "smoke", "--seeds", "3", "--seeds-at-once", "2", "--out",
           str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"]
   compare.main(argv)
   assert events[8:] == [
