@@ -319,8 +319,6 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
     d = group.parent / f"seed{seed}"
     (d / "eval").mkdir(parents=True, exist_ok=True)
     (d / "config.json").write_text(config)
-    (d / "summary.json").write_text(json.dumps(
-        {**summary, "group": group.name, "group_index": i}, indent=2))
     mine = [{**r, "seed": "0"} for r in rows if int(float(r["seed"])) == i]
     for name, columns in (("progress_seeds.csv", fields),
                           ("progress.csv", [c for c in fields if c != "seed"])):
@@ -343,6 +341,9 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
     np.savez(d / "eval" / "hip_trace.npz", dt=trajectories["dt"],
              hip_pitch=traj["hip_pitch"][0, :n], hip_pitch_ref=traj["hip_pitch_ref"][0, :n])
     plot_hip_pitch(traj, dt, d / "eval" / "hip_pitch.png", json.loads(config)["algo"])
+    # Last: until it is there, the seed reads as stopped early (seed_state).
+    (d / "summary.json").write_text(json.dumps(
+        {**summary, "group": group.name, "group_index": i}, indent=2))
     dirs.append(d)
   return dirs
 
@@ -399,13 +400,15 @@ def per_seed_table(results: dict, convergence: dict | None, dirs: dict, paired: 
   head += ["training wall (s)"]
   lines = ["", "## Per seed", "",
            "Each seed's evaluation (`<algo>/lr<rate>/seed<s>/eval/metrics.json`); T_conv at the "
-           "common threshold; the wall time includes whatever shared the cores.", "",
+           "common threshold; the wall time includes whatever shared the cores (for seeds "
+           "trained together, the whole group's, named beside it).", "",
            "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
   for i, name in enumerate(paired):
     for algo in ("mash", "ppo"):
       m = results[algo]["per_seed"][i]
       summary = dirs[algo][i] / "summary.json"
-      wall = json.loads(summary.read_text()).get("wall_s") if summary.is_file() else None
+      summary = json.loads(summary.read_text()) if summary.is_file() else {}
+      wall, group = summary.get("wall_s"), summary.get("group")
       row = [name[4:], NAMES[algo], f"{100 * m['fall_rate']:.1f} %", f"{m['forward_speed']:.3f}",
              f"{m['S_action']:.3f}", f"{m['S_torso']:.3f}", f"{m['C_limb']:.3f}"]
       if arms:
@@ -413,7 +416,7 @@ def per_seed_table(results: dict, convergence: dict | None, dirs: dict, paired: 
       if w:
         t = convergence["t_conv"][algo][w][i]
         row.append("not reached" if t is None else str(t))
-      row.append("n/a" if wall is None else f"{wall:.0f}")
+      row.append("n/a" if wall is None else f"{wall:.0f}" + (f" ({group})" if group else ""))
       lines.append("| " + " | ".join(row) + " |")
   return "\n".join(lines) + "\n"
 

@@ -555,6 +555,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
   assert [d.name for d in compare.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1", "seed2"]
+  assert " (group_seeds1-2) |" in (tmp_path / "cmp" / "report.md").read_text()
   events.clear()
   compare.main(argv)
   assert events == []
