@@ -229,12 +229,17 @@ def hip_trace(seed_dir: Path, seconds: float = 3.0) -> dict:
   comparison's committed records."""
   trace = Path(seed_dir) / "eval" / "hip_trace.npz"
   if not trace.is_file():
-    tr = np.load(Path(seed_dir) / "eval" / "trajectories.npz")
-    n = min(int(seconds / float(tr["dt"])), tr["hip_pitch"].shape[1])
-    np.savez(trace, dt=tr["dt"], hip_pitch=tr["hip_pitch"][0, :n],
-             hip_pitch_ref=tr["hip_pitch_ref"][0, :n])
+    save_hip_trace(trace, np.load(Path(seed_dir) / "eval" / "trajectories.npz"), seconds)
   with np.load(trace) as tr:
     return {k: tr[k] for k in tr.files}
+
+
+def save_hip_trace(path: Path, trajectories, seconds: float = 3.0) -> None:
+  """Writes the first episode's first ``seconds`` of ``trajectories`` (``dt``, ``hip_pitch
+  [E, T, 2]``, ``hip_pitch_ref``) to ``path``: the arrays :func:`hip_trace` returns."""
+  n = min(int(seconds / float(trajectories["dt"])), trajectories["hip_pitch"].shape[1])
+  np.savez(path, dt=trajectories["dt"], hip_pitch=trajectories["hip_pitch"][0, :n],
+           hip_pitch_ref=trajectories["hip_pitch_ref"][0, :n])
 
 
 def plot_hip(run_dirs: dict, path: Path, seconds: float = 3.0) -> None:
@@ -336,11 +341,9 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
     (d / "eval" / "metrics.json").write_text(json.dumps(alone, indent=2))
     picked = trajectories["seed"] == i
     traj = {k: trajectories[k][picked] for k in trajectories.files if k != "dt"}
-    dt = float(trajectories["dt"])
-    n = min(int(3.0 / dt), traj["hip_pitch"].shape[1])
-    np.savez(d / "eval" / "hip_trace.npz", dt=trajectories["dt"],
-             hip_pitch=traj["hip_pitch"][0, :n], hip_pitch_ref=traj["hip_pitch_ref"][0, :n])
-    plot_hip_pitch(traj, dt, d / "eval" / "hip_pitch.png", json.loads(config)["algo"])
+    save_hip_trace(d / "eval" / "hip_trace.npz", {**traj, "dt": trajectories["dt"]})
+    plot_hip_pitch(traj, float(trajectories["dt"]), d / "eval" / "hip_pitch.png",
+                   json.loads(config)["algo"])
     # Last: until it is there, the seed reads as stopped early (seed_state).
     (d / "summary.json").write_text(json.dumps(
         {**summary, "group": group.name, "group_index": i}, indent=2))
