@@ -308,7 +308,8 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
   seed's rows, seed column 0) and ``eval/`` (``metrics.json`` of that seed alone,
   ``hip_trace.npz``, ``hip_pitch.png``). Returns the seed directories."""
   import csv
-  from experiments.evaluate import plot_hip_pitch
+  from experiments import evaluate
+  from mash import policy as policy_lib
   metrics = json.loads((group / "eval" / "metrics.json").read_text())
   if len(metrics["per_seed"]) != len(seeds):
     raise common.UserError(f"'{group}' has {len(metrics['per_seed'])} evaluated seeds, "
@@ -331,19 +332,15 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
         writer = csv.DictWriter(f, columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(mine)
-    m = metrics["per_seed"][i]
-    alone = {k: m[k] for k in metrics["std"] if k in m}
-    alone.update(command_vx=metrics["command_vx"], iteration=metrics["iteration"],
-                 std={k: 0.0 for k in alone}, fall_rate_by_friction=m["fall_rate_by_friction"],
-                 all_episodes=m["all_episodes"], per_seed=[m], eval_config=metrics["eval_config"],
-                 smoothing_window=metrics["smoothing_window"])
-    alone["T_conv"] = m["T_conv"]
-    (d / "eval" / "metrics.json").write_text(json.dumps(alone, indent=2))
     picked = trajectories["seed"] == i
     traj = {k: trajectories[k][picked] for k in trajectories.files if k != "dt"}
+    alone = evaluate.summarize([metrics["per_seed"][i]], traj, metrics["eval_config"],
+                               metrics["iteration"], evaluate.learning_curve(
+                                   policy_lib.read_progress(d, per_seed=True), 0))
+    (d / "eval" / "metrics.json").write_text(json.dumps(alone, indent=2))
     save_hip_trace(d / "eval" / "hip_trace.npz", {**traj, "dt": trajectories["dt"]})
-    plot_hip_pitch(traj, float(trajectories["dt"]), d / "eval" / "hip_pitch.png",
-                   json.loads(config)["algo"])
+    evaluate.plot_hip_pitch(traj, float(trajectories["dt"]), d / "eval" / "hip_pitch.png",
+                            json.loads(config)["algo"])
     # Last: until it is there, the seed reads as stopped early (seed_state).
     (d / "summary.json").write_text(json.dumps(
         {**summary, "group": group.name, "group_index": i}, indent=2))

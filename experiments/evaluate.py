@@ -32,11 +32,59 @@ import numpy as np
 from experiments import common
 
 
+SEED_METRICS = ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate",
+                "forward_speed")
+
+
+def learning_curve(progress: dict[str, np.ndarray], seed: int) -> np.ndarray | None:
+  """Seed ``seed``'s curve of the reward under the paper's weights, whatever curricula trained
+  (older runs: the trained reward, the only one they logged), from the columns of a run's
+  ``progress_seeds.csv``; None without them (a policy folder has no curve, hence no T_conv)."""
+  if not progress:
+    return None
+  key = "paper_episode_reward" if "paper_episode_reward" in progress else "episode_reward"
+  return progress[key][progress["seed"] == seed]
+
+
+def summarize(per_seed: list[dict], episodes: dict[str, np.ndarray], eval_config: dict,
+              iteration: int, curve: np.ndarray | None) -> dict:
+  """A run's ``metrics.json``: the mean over seeds of each seed's metrics, their spread
+  (``std``), the falls by floor friction over all episodes, and each seed's own (``per_seed``).
+
+  Args:
+    per_seed: one :func:`mash.evaluation.evaluate` result per seed.
+    episodes: the seeds' episodes together, ``[E, ...]`` arrays with ``friction`` ``[E]`` and
+      ``alive`` ``[E, T]``.
+    eval_config: the fields of the :class:`mash.evaluation.EvalConfig` they ran under.
+    iteration: the evaluated checkpoint's.
+    curve: the first seed's learning curve (its smoothing window is reported), or None.
+  """
+  from mash import evaluation, metrics as metrics_lib
+  keys = SEED_METRICS + (("C_limb_arm_leg",) if "C_limb_arm_leg" in per_seed[0] else ())
+  keys = tuple(k for k in keys if per_seed[0][k] is not None)
+  result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys}
+  result["T_conv"] = result.get("T_conv")
+  result["command_vx"] = eval_config["command_vx"]
+  result["iteration"] = iteration
+  result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"] for k in keys}
+  result["fall_rate_by_friction"] = evaluation.falls_by_friction(
+      episodes["friction"], episodes["alive"].min(axis=1) > 0)
+  result["all_episodes"] = {
+      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
+          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
+      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
+  result["per_seed"] = per_seed
+  result["eval_config"] = eval_config
+  result["smoothing_window"] = (None if curve is None
+                                else metrics_lib.convergence_iteration(curve)[1]["window"])
+  return result
+
+
 def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
                  iteration: int | None = None, robot: str | None = None) -> dict:
   """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``), or
   the policy of a policy folder (:mod:`mash.policy`); returns (and writes) the metrics."""
-  from mash import env as env_lib, evaluation, metrics as metrics_lib, policy as policy_lib, tasks
+  from mash import env as env_lib, evaluation, policy as policy_lib, tasks
 
   eval_cfg = eval_cfg or evaluation.EvalConfig()
   policies = policy_lib.load_all(run_dir, iteration, robot)
@@ -46,41 +94,17 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   # A policy folder has no learning curve: no T_conv.
   progress = ({} if policy_lib.is_policy_folder(run_dir)
               else policy_lib.read_progress(run_dir, per_seed=True))
-  # T_conv on the reward under the paper's weights, whatever curricula trained (older runs: the
-  # trained reward, the only one they logged).
-  curve_key = "paper_episode_reward" if "paper_episode_reward" in progress else "episode_reward"
   per_seed, trajs = [], []
   for policy in policies:
     s = policy.seed
     traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
-    curve = progress[curve_key][progress["seed"] == s] if progress else None
-    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, curve,
+    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, learning_curve(progress, s),
                                         arms_act=tasks.get(cfg.env.task).arms_act))
     traj["seed"] = np.full(traj["alive"].shape[0], s)
     trajs.append(traj)
-
-  keys = ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed")
-  if "C_limb_arm_leg" in per_seed[0]:
-    keys += ("C_limb_arm_leg",)
-  result = {k: float(np.mean([m[k] for m in per_seed])) for k in keys if per_seed[0][k] is not None}
-  result["T_conv"] = result.get("T_conv")
-  result["command_vx"] = eval_cfg.command_vx
-  result["iteration"] = policies[0].iteration
-  result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"]
-                   for k in keys if per_seed[0][k] is not None}
   merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
-  result["fall_rate_by_friction"] = evaluation.falls_by_friction(
-      merged["friction"], merged["alive"].min(axis=1) > 0)
-  result["all_episodes"] = {
-      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
-          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
-      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
-  result["per_seed"] = per_seed
-  result["eval_config"] = eval_cfg.__dict__
-  result["smoothing_window"] = None
-  if progress:
-    _, info = metrics_lib.convergence_iteration(progress[curve_key][progress["seed"] == 0])
-    result["smoothing_window"] = info["window"]
+  result = summarize(per_seed, merged, eval_cfg.__dict__, policies[0].iteration,
+                     learning_curve(progress, 0))
   if write:
     out = Path(run_dir) / eval_dir_name(eval_cfg, iteration)
     out.mkdir(exist_ok=True)

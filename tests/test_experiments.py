@@ -543,6 +543,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
       ("eval", "cmp/ppo/lr0.0003/group_seeds1-2")]
   mash = tmp_path / "cmp" / "mash" / "lr0.0003"
   base = compare.method_curves(mash / "seed0")[1][0]
+  single = json.loads((smoke_run / "eval" / "metrics.json").read_text())
   for s in (1, 2):
     d = mash / f"seed{s}"
     assert compare.seed_state(d, 10) == "done"
@@ -552,6 +553,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
     metrics = json.loads((d / "eval" / "metrics.json").read_text())
     assert metrics["fall_rate"] == metrics["per_seed"][0]["fall_rate"] == 0.01 + 0.1 * (s - 1)
     assert len(metrics["per_seed"]) == 1 and (d / "eval" / "hip_trace.npz").is_file()
+    assert set(metrics) == set(single) and metrics["std"]["fall_rate"] == 0.0
   assert [d.name for d in compare.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1", "seed2"]
