@@ -64,9 +64,9 @@ def test_a_batch_larger_than_the_warp_contact_buffer_is_refused(monkeypatch):
   with pytest.raises(experiment.ConfigError, match=r"warp_max_envs=256 must be at least the envs "
                      r"stepped at once, train.num_envs x seeds = 512"):
     experiment.make_config("bipedal", preset="cpu", overrides=[
-        "env.physics.impl=warp", "env.physics.warp_max_envs=256"])
+        "train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=256"])
   experiment.make_config("bipedal", preset="cpu", overrides=[
-      "env.physics.impl=warp", "env.physics.warp_max_envs=512"])
+      "train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=512"])
 
 
 @pytest.mark.skipif(robots.warp_installed(), reason="Warp is installed here")
