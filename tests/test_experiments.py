@@ -104,7 +104,7 @@ def test_cpu_preset_is_the_measured_walking_run():
   penalty curricula, linear learning-rate decay, torque noise): 98.2 % survival over 512
   episodes at 0.404 m/s (0.4 commanded), grid mean vx error 0.032 m/s."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
-      "2026-12-05_cpu_preset_newton2" / "seed0" / "config.json"
+      "2026-12-05_compare_bipedal_newton2" / "mash" / "lr0.001" / "seed0" / "config.json"
   measured = experiment.from_json(recorded.read_text())
   assert json.loads(recorded.read_text())["env"]["randomization"]["torque_noise"] == 0.02
   preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "cpu"))
