@@ -80,8 +80,8 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
                                actor_hidden=(64, 64), critic_hidden=(64, 64),
                                learning_rate=1e-3)
   if preset == "cpu":
-    # 1250 iterations of 400 envs (12 M steps) under two Newton iterations (_preset_env): 1.9 s
-    # per iteration on 2 Intel Xeon cores (family 6 model 167) as two local processes, 39 min
+    # 1250 iterations of 400 envs (12 M steps) under two Newton iterations (_preset_env): 1.9-2.1 s
+    # per iteration on 2 Intel Xeon cores (family 6 model 167) as two local processes, 39-43 min
     # with the compile. Action std from 1 under the penalty curriculum, slippery floors first
     # under the friction curriculum (both of _preset_env, both end at iteration 1000), the stride
     # reference, and a learning rate decaying to 0 at the last iteration (without the decay the
@@ -142,8 +142,8 @@ def _preset_env(preset: str, task: str, algo: str) -> env_lib.EnvConfig:
     # Two Newton iterations: at one, the contact forces on slippery floors are far from the
     # converged ones (the same policy fell on 56 % of floors below friction 0.2 at 1 iteration,
     # 33 % at 3-4), and the preset's policies fell on 57-83 % of those floors, 7-9 % of all
-    # episodes. Trained at 2 (line search 2: as fast as 1 at 2 iterations), one seed fell on
-    # 20 % of them and survived 98.2 % of 512 episodes (2026-12-05).
+    # episodes. Trained at 2 (line search 2: as fast as 1 at 2 iterations), three seeds fell
+    # on 20-26 % of them and survived 97.5-98.2 % of 512 episodes (2026-12-05).
     cfg = dataclasses.replace(cfg, physics=dataclasses.replace(
         cfg.physics, iterations=CPU_SOLVER_ITERATIONS, ls_iterations=CPU_LS_ITERATIONS))
   return cfg

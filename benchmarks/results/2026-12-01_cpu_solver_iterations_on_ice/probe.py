@@ -4,8 +4,9 @@
 
 rolls ``assets/policies/t1_bipedal_mash`` as it was shipped until 2026-12-05 (trained with 1
 Newton iteration, 4 line-search iterations; run the script in a checkout of commit b46426c to get
-that policy: the folder holds the 2-iteration preset's seed 0 since) for N randomized 20 s episodes at vx 0.4 m/s on floors of friction U[LO, HI], with
-the env's solver set to ITERATIONS / LS, and prints one JSON line.
+that policy: the folder holds the 2-iteration preset's seed 0 since) for N randomized 20 s
+episodes at vx 0.4 m/s on floors of friction U[LO, HI], with the env's solver set to
+ITERATIONS / LS, and prints one JSON line.
 """
 
 import dataclasses
