@@ -1,5 +1,7 @@
 """Tests for mash.metrics (hand-computed expectations in comments)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -201,6 +203,15 @@ def test_seed_summary_and_welch():
   assert r["t"] == pytest.approx(-10.0 / np.sqrt(2.0 / 3.0))
   assert r["p"] < 1e-3
   assert np.isnan(metrics.welch_ttest([1.0], [2.0, 3.0])["p"])
+
+
+def test_welch_on_tied_fall_rates_is_exact_and_quiet():
+  # Two seeds falling on 2/128 episodes each vs 3/128 and 4/128: the tied sample has variance 0,
+  # so t = (2 - 3.5) / 128 / (std(3, 4) / 128 / sqrt(2)) = -1.5 / 0.5 = -3.
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    r = metrics.welch_ttest([2 / 128, 2 / 128], [3 / 128, 4 / 128])
+  assert r["t"] == pytest.approx(-3.0)
 
 
 def test_bootstrap_ci_of_the_mean():
