@@ -163,8 +163,10 @@ def build_report(task: str, results: dict, preset: str, seeds: int,
     if not (np.isfinite(m) and np.isfinite(p_)):
       lines.append(f"- {label}: not available.")
       continue
+    p_holm = tests[k]["p_holm"]
+    p_text = f"{p_holm:.3g}" if np.isfinite(p_holm) else "n/a, no test below two seeds a method"
     lines.append(f"- {label}: {tests[k]['verdict']} (MASH {m:.4g} vs PPO {p_:.4g}, Holm-adjusted "
-                 f"p = {tests[k]['p_holm']:.3g}); the paper reports MASH lower.")
+                 f"p = {p_text}); the paper reports MASH lower.")
   return "\n".join(lines) + "\n", {"task": task, "preset": preset, "seeds": seeds,
                                     "table": table, "tests": tests, "paper": PAPER[task],
                                     "convergence": convergence}

@@ -347,6 +347,10 @@ def test_compare_report_from_synthetic_results():
   assert data["tests"]["fall_rate"]["verdict"] == "no difference at this power"
   md, data = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
   assert "- S_action: PPO better" in md
+  # One seed a method (a comparison's first pair): no test, and the report says so.
+  one = {a: {"per_seed": seeds(b)["per_seed"][:1]} for a, b in (("mash", 1.0), ("ppo", 2.0))}
+  md, _ = build_report("bipedal", one, "smoke", 1)
+  assert "nan" not in md and "p = n/a, no test below two seeds a method" in md
   # With the all-episode metrics in the evaluation, they get rows of their own.
   both = {a: seeds(b) for a, b in (("mash", 1.0), ("ppo", 2.0))}
   for res in both.values():
