@@ -180,6 +180,24 @@ def _row_iteration(row: dict[str | None, Any]) -> int | None:
     return None
 
 
+def _wall_at(out: Path, iteration: int, previous: dict[str, Any]) -> float:
+  """Seconds the run had trained when it reached ``iteration``, the restored checkpoint: that row's
+  ``wall_s`` in ``progress.csv``. A kill writes no ``summary.json``, and one left by an earlier
+  stop predates the newer checkpoints, so the summary is only the fallback (no such row)."""
+  path = out / "progress.csv"
+  if not iteration:
+    return 0.0
+  if path.exists():
+    text = path.read_text(errors="replace")
+    for row in csv.DictReader(io.StringIO(text[:text.rfind("\n") + 1])):
+      if _row_iteration(row) == iteration:
+        try:
+          return float(row["wall_s"])
+        except (KeyError, ValueError):
+          break
+  return float(previous.get("wall_s", 0.0))
+
+
 class _CsvLog:
   """Appends rows to a CSV, writing the header once. On resume it keeps only the whole rows up to
   ``keep_until``: a write cut short (a kill, a full disk) leaves a last line without its line end,
@@ -575,7 +593,7 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   state, start_iteration = _start(trainer, cfg, storage, resume)
   previous = json.loads((out / "summary.json").read_text()) if (
       resume and (out / "summary.json").exists()) else {}
-  wall0 = time.perf_counter() - float(previous.get("wall_s", 0.0))
+  wall0 = time.perf_counter() - _wall_at(out, start_iteration if resume else 0, previous)
   calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
   calls = calls if max_calls is None else min(calls, max_calls)
 

@@ -336,7 +336,8 @@ def test_same_seed_gives_bit_identical_progress(smoke_run, second_run):
 def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer, tmp_path,
                                                        capfd):
   """Garbage in the newest step (10): loading warns once and uses step 5; ``--resume`` moves the
-  torn step aside (never deletes it), retrains 6..10 and logs exactly what the intact run logged."""
+  torn step aside (never deletes it), retrains 6..10 and logs exactly what the intact run logged,
+  its clock going on from step 5's logged ``wall_s`` though no ``summary.json`` is left."""
   run = tmp_path / "torn"
   shutil.copytree(second_run, run)
   _tear(run / "checkpoints" / "10")
@@ -349,9 +350,22 @@ def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer
       and "trying step 5" in warnings[0], warnings
   assert _tree_digest(run / "checkpoints" / "10") == torn  # loading changes nothing
 
+  # As a kill leaves it: no summary.json. The clock goes on from step 5's row (set to 1000 s here).
+  (run / "summary.json").unlink()
+  with (run / "progress.csv").open() as f:
+    rows = list(csv.DictReader(f))
+  rows[4]["wall_s"] = "1000.0"
+  with (run / "progress.csv").open("w", newline="") as f:
+    writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+
   cfg = runs.load_config(run)
   summary = runs.train(cfg, run, resume=True, show_progress=False, trainer=smoke_trainer)
   assert summary["iterations"] == 10 and not summary["interrupted"]
+  wall = policy.read_progress(run)["wall_s"]
+  assert np.all(wall[5:] > 1000.0) and np.all(np.diff(wall[5:]) >= 0), wall
+  assert summary["wall_s"] >= wall[-1]
   assert _tree_digest(run / "checkpoints_unrestorable" / "10") == torn
   assert _rows_without_wall(run / "progress.csv") == _rows_without_wall(second_run / "progress.csv")
   assert runs.restore_run(run, smoke_trainer).step == 10
