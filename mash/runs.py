@@ -184,9 +184,9 @@ def _wall_at(out: Path, iteration: int, previous: dict[str, Any]) -> float:
   """Seconds the run had trained when it reached ``iteration``, the restored checkpoint: that row's
   ``wall_s`` in ``progress.csv``. A kill writes no ``summary.json``, and one left by an earlier
   stop predates the newer checkpoints, so the summary is only the fallback (no such row)."""
-  path = out / "progress.csv"
   if not iteration:
     return 0.0
+  path = out / "progress.csv"
   if path.exists():
     text = path.read_text(errors="replace")
     for row in csv.DictReader(io.StringIO(text[:text.rfind("\n") + 1])):
