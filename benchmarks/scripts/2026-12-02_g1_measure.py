@@ -1,6 +1,6 @@
 """Measures a robot file's kinematic numbers from its model (run from the repository root):
 
-  python benchmarks/results/2026-12-02_g1_spec/measure.py unitree_g1
+  python benchmarks/scripts/2026-12-02_g1_measure.py unitree_g1
 
 home_height: root z that puts the lowest sole sphere on the floor at the default pose;
 base_height_target: the root's height above the soles there; feet_height_target: the swing
@@ -14,7 +14,7 @@ import sys
 import mujoco
 import numpy as np
 
-from mash import robots
+from mash.sim import robots
 
 
 def sole_bottoms(model, data, spec, side):

@@ -1,5 +1,9 @@
+"""Does the G1 stand at zero action under the PD loop? Tries crouch poses and gains (native MuJoCo).
+
+  python benchmarks/scripts/2026-12-02_g1_stand_probe.py
+"""
 import tomllib, mujoco, numpy as np
-from mash import robots
+from mash.sim import robots
 def trial(pose, gains={}, steps=2000):
   d = tomllib.loads(robots.robot_file("unitree_g1").read_text())
   for r,v in pose.items(): d["roles"][r]["default"]=v

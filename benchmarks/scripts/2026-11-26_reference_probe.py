@@ -1,11 +1,11 @@
 """Open-loop probe: play the temporal director's reference as the action, versus zero action.
 
-Run from the repository root: python benchmarks/results/2026-11-26_reference_probe/probe.py [SCALE]
+Run from the repository root: python benchmarks/scripts/2026-11-26_reference_probe.py [SCALE]
 SCALE multiplies the reference (1.0 = the env's swing_amplitude, 0.17 rad hip pitch). DR off,
 command 0.4 m/s forward, 8 envs x 150 control steps (3 s); an env stops counting when it falls.
 """
 import dataclasses, sys, jax, jax.numpy as jnp, numpy as np
-from mash import env as env_lib, randomize
+from mash.sim import env as env_lib, randomize
 scale = float(sys.argv[1]) if len(sys.argv) > 1 else 1.0
 cfg = env_lib.EnvConfig(
     task="bipedal", auto_reset=False,

@@ -2,7 +2,7 @@
 
 Native MuJoCo, the env's 5 ms substeps, the file's torque limits, 10 s from the default pose with
 the soles on the floor; prints (pelvis z, pitch) at the end. Usage:
-  python benchmarks/results/2026-12-02_g1_spec/stand_gains.py [robot]
+  python benchmarks/scripts/2026-12-02_g1_stand_gains.py [robot]
 """
 import sys
 import tomllib
@@ -10,7 +10,7 @@ import tomllib
 import mujoco
 import numpy as np
 
-from mash import robots
+from mash.sim import robots
 
 PITCH = ("hip_pitch", "knee_pitch", "ankle_pitch")
 
