@@ -9,7 +9,7 @@ __version__ = "0.1.0"
 # when Warp is not installed ("Failed to import warp: ...", "Failed to import mujoco_warp: ...").
 # The JAX backend, this package's default, does not need it: import MJX once here with those two
 # lines held back, and pass on anything else it prints. A config that asks for Warp without it is
-# refused in one line instead (``robots.check_physics``, from the result of this probe).
+# refused in one line instead (``model_lib.check_physics``, from the result of this probe).
 _WARP_PROBE = ("Failed to import warp:", "Failed to import mujoco_warp:")
 with _contextlib.redirect_stdout(_io.StringIO()) as _printed:
   import mujoco.mjx  # noqa: F401,E402

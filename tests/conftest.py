@@ -1,7 +1,7 @@
 """Shared, session-scoped fixtures: each trainer program is compiled once for the whole test run.
 
 The learner tests (``test_losses``, ``test_networks``, ``test_train``) use the tiny toy env
-(:mod:`mash.toy_env`) and tiny networks so that every jitted program compiles in seconds on CPU.
+(:mod:`toy_env`) and tiny networks so that every jitted program compiles in seconds on CPU.
 
 JAX's persistent compilation cache is on for the whole session, in ``.jax_cache/`` at the repository
 root (git-ignored; a ``JAX_COMPILATION_CACHE_DIR`` set by the caller wins). The settings are also put
@@ -40,9 +40,9 @@ import jax  # noqa: E402  (after XLA_FLAGS: the backend reads them when it start
 import numpy as np
 import pytest
 
-from mash import train
-from mash.config import TrainConfig
-from mash.toy_env import make_toy_env
+from mash.rl import trainer as trainer_lib
+from mash.rl.config import TrainConfig
+from toy_env import make_toy_env
 
 SMOKE_READERS = frozenset({'test_notebooks', 'test_seams', 'test_sim2sim', 'test_tracking'})
 TOY_CALLS = 6  # jitted calls of the learning run (x iterations_per_call iterations).
@@ -73,40 +73,37 @@ def mash_env():
 
 
 @pytest.fixture(scope='session')
-def mash_trainer(toy_config, mash_env) -> train.Trainer:
-  return train.make_train(toy_config, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+def mash_trainer(toy_config, mash_env) -> trainer_lib.Trainer:
+  return trainer_lib.make_trainer(toy_config, mash_env,
+                                  compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
 
 
 @pytest.fixture(scope='session')
 def learning_run(mash_trainer):
   """Trains seed 0 for ``TOY_CALLS`` calls; returns the metrics of every call (numpy, stacked to
   ``[TOY_CALLS * iterations_per_call]``) and the params after the first call."""
-  state = mash_trainer.init(jax.random.PRNGKey(0))
-  history = []
-  first_params = []
-
-  def progress(iteration, metrics):
-    history.append(metrics)
-
+  state = mash_trainer.init()
+  history, first_params = [], None
   for call in range(TOY_CALLS):
-    state = train.run(mash_trainer, state, 1, progress)
+    state, metrics = mash_trainer.train_epoch(state)
+    history.append(jax.device_get(metrics))
     if call == 0:
-      first_params.append(jax.device_get(state.params))
+      first_params = jax.device_get(state.params)
   metrics = {k: np.concatenate([m[k] for m in history]) for k in history[0]}
-  return {'metrics': metrics, 'first_params': first_params[0], 'final_state': state}
+  return {'metrics': metrics, 'first_params': first_params, 'final_state': state}
 
 
 @pytest.fixture(scope='session')
 def smoke_config():
   """The ``smoke`` preset of bipedal MASH."""
-  from mash import experiment
+  from mash.runs import experiment
   return experiment.make_config('bipedal', 'mash', 'smoke')
 
 
 @pytest.fixture(scope='session')
 def smoke_trainer(smoke_config):
   """The trainer of ``smoke_config``: its programs compile once and serve every in-process run."""
-  from mash import runs
+  from mash.runs import loop as runs
   return runs.build_trainer(smoke_config)
 
 
@@ -116,7 +113,7 @@ def smoke_run(tmp_path_factory, smoke_config, smoke_trainer):
 
   Returns the run directory (``config.json``, ``progress.csv``, ``checkpoints/``, ...).
   """
-  from mash import runs
+  from mash.runs import loop as runs
   out = tmp_path_factory.mktemp('runs') / 'smoke_bipedal_mash'
   runs.train(smoke_config, out, show_progress=False, trainer=smoke_trainer)
   return out
@@ -127,8 +124,8 @@ def evaluated_smoke_run(smoke_run):
   """``smoke_run`` with an evaluation in ``eval/``: the one a test wrote there, else a tiny one
   (3 episodes of 1 s)."""
   if not (smoke_run / 'eval' / 'metrics.json').exists():
-    from mash import evaluation
-    from experiments.evaluate import evaluate_run
+    from mash.analysis import evaluation
+    from mash.analysis.reports import evaluate_run
     evaluate_run(str(smoke_run), evaluation.EvalConfig(num_episodes=3, episode_s=1.0))
   return smoke_run
 

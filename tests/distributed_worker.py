@@ -9,7 +9,7 @@ jitted calls, and each process writes ``DIR/result_p{I}.npz``: parameters, norma
 the metrics of every call and the global env batch's last rewards, keyed by pytree path.
 With ``--checkpoint`` it also saves the final global state with Orbax (every process) and restores it
 into a globally sharded template, checking the round trip. With ``--run DIR`` it then trains the
-same config from the same key through :func:`mash.runs.train` (the CLI's loop) into ``DIR``: one
+same config from the same key through :func:`mash.runs.loop.train` (the CLI's loop) into ``DIR``: one
 call, stopped by ``max_calls``, then ``resume=True`` to the end (``num_iterations = 2 * calls``
 iterations in all), and checks that a second non-resume ``train`` into ``DIR`` is refused by
 every process.
@@ -52,25 +52,25 @@ def main() -> None:
   args = parser.parse_args()
   t_start = time.perf_counter()
 
-  from mash import distributed
+  from mash.rl import distributed
   distributed.initialize(args.coordinator, args.num_processes, args.process_id)
   _log(args, t_start, 'initialized')
 
   import jax
   import numpy as np
   from jax.sharding import PartitionSpec as P
-  from mash import train
-  from mash.config import TrainConfig
-  from mash.toy_env import make_toy_env
+  from mash.rl import trainer as trainer_lib
+  from mash.rl.config import TrainConfig
+  from toy_env import make_toy_env
 
   assert jax.process_count() == args.num_processes, jax.process_count()
   assert jax.device_count() == 2, jax.devices()
   config = TrainConfig(**CONFIG)
   mesh = distributed.global_mesh()
-  dt = distributed.make_distributed_trainer(config, make_toy_env('legs_arms', 'mash'), mesh,
-                                            compiler_options=train.FAST_COMPILE_OPTIONS)
+  dt = trainer_lib.make_trainer(config, make_toy_env('legs_arms', 'mash'), mesh=mesh,
+                                compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   _log(args, t_start, 'built trainer')
-  state = dt.init(jax.random.PRNGKey(config.seed))
+  state = dt.init()
   _log(args, t_start, 'init')
   assert state.env_state.reward.sharding.spec == P('devices')
   assert len(state.env_state.reward.addressable_shards) == 2 // args.num_processes
@@ -85,12 +85,12 @@ def main() -> None:
   results['iteration'] = distributed.gather_to_host(state.iteration)
 
   if args.checkpoint:
-    from mash import checkpoint
+    from mash.runs import checkpoint
     expected = distributed.gather_to_host(state)
     manager = checkpoint.make_manager(args.checkpoint)
     checkpoint.save(manager, int(results['iteration']), state, config)
     manager.close()
-    template = distributed.global_state_shapes(dt.trainer, mesh, jax.random.PRNGKey(config.seed))
+    template = dt.state_shapes()
     restored = checkpoint.restore_latest(args.checkpoint, template)
     assert restored.state.env_state.reward.sharding.spec == P('devices')
     jax.tree.map(np.testing.assert_array_equal, distributed.gather_to_host(restored.state),
@@ -101,17 +101,17 @@ def main() -> None:
 
   if args.run:
     import dataclasses
-    from mash import experiment, runs, trainers
+    from mash.runs import experiment
+    from mash.runs import loop as runs
     cfg = experiment.ExperimentConfig(
         preset='smoke', checkpoint_every=1,
         train=dataclasses.replace(config, num_iterations=config.iterations_per_call * args.calls))
-    on_mesh = trainers.on_mesh(dt, config.seed)
-    first = runs.train(cfg, args.run, show_progress=False, max_calls=1, trainer=on_mesh)
+    first = runs.train(cfg, args.run, show_progress=False, max_calls=1, trainer=dt)
     _log(args, t_start, f'runs.train: {first["iterations"]} iterations')
-    resumed = runs.train(cfg, args.run, resume=True, show_progress=False, trainer=on_mesh)
+    resumed = runs.train(cfg, args.run, resume=True, show_progress=False, trainer=dt)
     _log(args, t_start, f'runs.train resumed: {resumed["iterations"]} iterations')
     try:
-      runs.train(cfg, args.run, show_progress=False, trainer=on_mesh)
+      runs.train(cfg, args.run, show_progress=False, trainer=dt)
       refused = ''
     except runs.RunError as e:
       refused = str(e)

@@ -1,7 +1,7 @@
 """Worker process of ``tests/test_reliability.py``: the training CLI, SIGKILLed at a chosen point.
 
 ``python tests/kill_worker.py MARKS KILL -- ARGV...`` runs ``experiments.bipedal ARGV...`` (through
-``experiments.train_task.main``) with nothing changed but two observation points, and creates an
+``experiments.bipedal.main``) with nothing changed but two observation points, and creates an
 empty file in the folder ``MARKS`` at each (the test waits for them, and checks where a kill fell):
 
 - ``call_N``: the N-th ``train_epoch`` call of this process starts (a jitted call).
@@ -41,9 +41,9 @@ def _die(marks: Path, name: str) -> None:
 
 
 def _watch_calls(marks: Path, kill_call: int | None) -> None:
-  """Wraps the trainer ``mash.runs.train`` builds: marks each call, kills in call ``kill_call``."""
+  """Wraps the trainer ``mash.runs.loop.train`` builds: marks each call, kills in call ``kill_call``."""
   import jax
-  from mash import runs
+  from mash.runs import loop as runs
   build = runs.build_trainer
 
   def build_trainer(cfg):
@@ -96,8 +96,8 @@ def main() -> None:
   _watch_calls(marks, int(where) if what == "call" else None)
   if what == "save":
     _watch_saves(marks, int(where))
-  from experiments.train_task import main as train_main
-  train_main("bipedal", argv)
+  from experiments import bipedal
+  bipedal.main(argv)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import agents, experiment, networks
+from mash.sim import agents
+from mash.runs import experiment
+from mash.rl import networks
 
 
 @pytest.mark.parametrize("ablation", experiment.ABLATIONS)

@@ -11,8 +11,8 @@ import functools
 import jax
 import numpy as np
 
-from mash import brax_compat
-from mash import env as env_lib
+from mash.bench import brax_compat
+from mash.sim import env_config
 
 
 def test_brax_ppo_trains_on_the_env():
@@ -20,7 +20,7 @@ def test_brax_ppo_trains_on_the_env():
   from brax.training.agents.ppo import train as ppo_train
 
   brax_compat.patch_jax_for_brax()
-  env = brax_compat.BraxView(env_lib.EnvConfig(task="bipedal"))
+  env = brax_compat.BraxView(env_config.EnvConfig(task="bipedal"))
   obs_size = env.observation_size
   assert obs_size == {"state": (50,), "privileged_state": (106,)}
   assert env.action_size == 12

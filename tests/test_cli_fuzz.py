@@ -19,9 +19,9 @@ from typing import Callable
 
 import pytest
 
-from experiments import (benchmark, benchmark_devices, common, compare, evaluate, export, play,
-                         sim2sim, train_task)
-from mash import experiment
+from experiments import (armswing, benchmark, benchmark_devices, bipedal, compare, evaluate, export,
+                         play, sim2sim)
+from mash.runs import experiment
 
 CASES_PER_ENTRY = 50
 BAD_NUMBERS = ("abc", "", "1e999", "-1e999", "nan", "inf", "-0", "1.5", "0x10", "1_000", "١٢",
@@ -103,8 +103,8 @@ TRAIN_FLAGS = (("--algo", "mash|ppo|sac"), ("--preset", "smoke|cpu|gpu|huge"), (
                ("--num-processes", "int"), ("--process-id", "int"),
                ("--local-processes", "auto|1|2|3|x"))
 ENTRIES: dict[str, tuple[Callable, tuple, tuple]] = {
-    "bipedal": (lambda argv: train_task.main("bipedal", argv), TRAIN_FLAGS, ("--preset",)),
-    "armswing": (lambda argv: train_task.main("armswing", argv), TRAIN_FLAGS, ("--preset",)),
+    "bipedal": (bipedal.main, TRAIN_FLAGS, ("--preset",)),
+    "armswing": (armswing.main, TRAIN_FLAGS, ("--preset",)),
     "evaluate": (evaluate.main, (
         ("--run", "run"), ("--episodes", "int"), ("--seconds", "float"),
         ("--command-vx", "float"), ("--no-dr", None), ("--no-push", None),
@@ -206,17 +206,27 @@ def test_every_entry_point_starts_cleanly_or_says_one_error_line(places, tmp_pat
                "DISPLAY", "WAYLAND_DISPLAY"):
     monkeypatch.delenv(name, raising=False)
   import subprocess
-  from mash import distributed, env as env_lib, policy, runs, sim2sim as sim2sim_lib
+  from mash.bench import benchmark as bench
+  from mash.bench import devices as bench_devices
+  from mash.bench import sweeps
+  from mash.rl import distributed
+  from mash.sim import env as env_lib
+  from mash.deploy import policy
+  from mash.analysis import reports
+  from mash.runs import launch
+  from mash.runs import loop as runs
+  from mash.deploy import sim2sim as sim2sim_lib
+  from mash.deploy import video as video_lib
   for owner, attr in ((runs, "train"), (policy, "load"), (policy, "load_all"),
-                      (common, "run_local_processes"), (distributed, "initialize"),
-                      (evaluate, "evaluate_run"), (evaluate, "tracking_run"),
-                      (sim2sim, "resolve_onnx"), (subprocess, "call"),
-                      (benchmark, "run_benchmark"), (benchmark, "sweep_batch"),
-                      (benchmark, "sweep_physics"), (env_lib, "MashEnv"),
-                      (benchmark_devices, "run"), (benchmark_devices, "worker_main"),
+                      (launch, "run_local_processes"), (distributed, "initialize"),
+                      (reports, "evaluate_run"), (reports, "tracking_run"),
+                      (sim2sim_lib, "resolve_onnx"), (subprocess, "call"),
+                      (bench, "run_benchmark"), (sweeps, "sweep_batch"),
+                      (sweeps, "sweep_physics"), (env_lib, "MashEnv"),
+                      (bench_devices, "run_scaling"), (bench_devices, "run_worker"),
                       (sim2sim_lib, "interactive")):
     monkeypatch.setattr(owner, attr, _started)
-  monkeypatch.setattr(sim2sim, "headless_gl", lambda: (None, "no OpenGL in this test"))
+  monkeypatch.setattr(video_lib, "headless_gl", lambda: (None, "no OpenGL in this test"))
   monkeypatch.setattr(sys, "argv", ["fuzz"])
 
   rng = random.Random(0)

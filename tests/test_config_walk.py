@@ -2,7 +2,7 @@
 item 1).
 
 The fields are found by introspection (a field added later is walked too): every ``int``,
-``float`` and tuple-of-number field of :class:`mash.experiment.ExperimentConfig`, its sections
+``float`` and tuple-of-number field of :class:`mash.runs.experiment.ExperimentConfig`, its sections
 included (``train``, ``env``, ``env.commands``, ``env.physics``, ``env.randomization``,
 ``env.reward_scales``, ``env.reward_params``), and of the evaluation's :class:`EvalConfig` and
 sim2sim's :class:`Sim2SimConfig`. A tuple gets the bad value in one element. Each value must be
@@ -30,9 +30,14 @@ from typing import Any, Iterator
 import jax
 import pytest
 
-from mash import env as env_lib
-from mash import evaluation, experiment, robots, sim2sim
-from mash import train as train_lib
+from mash.sim import env as env_lib
+from mash.analysis import evaluation
+from mash.runs import experiment
+from mash.sim import robots
+from mash.deploy import sim2sim
+from mash.rl import mappo
+from mash.rl import trainer as trainer_lib
+from mash.sim import model as model_lib
 
 REPO = Path(__file__).resolve().parents[1]
 BAD = ("nan", "inf", "0", "-1", "huge")
@@ -106,16 +111,16 @@ SIM2SIM_FIELDS = list(numeric_fields(sim2sim.Sim2SimConfig()))
 
 @pytest.fixture(scope="module", autouse=True)
 def cached_models():
-  """``robots.build_model`` memoized per robot and physics setting for this module: the model a
+  """``model_lib.build_model`` memoized per robot and physics setting for this module: the model a
   MashEnv compiles depends on nothing else."""
-  real = robots.build_model
+  real = model_lib.build_model
 
   @functools.lru_cache(maxsize=None)
-  def build(name: str, physics: robots.PhysicsConfig, full_collision: bool):
+  def build(name: str, physics: model_lib.PhysicsConfig, full_collision: bool):
     return real(robots.load(name), physics, full_collision)
 
   with pytest.MonkeyPatch.context() as mp:
-    mp.setattr(robots, "build_model", lambda spec, physics=robots.PhysicsConfig(),
+    mp.setattr(model_lib, "build_model", lambda spec, physics=model_lib.PhysicsConfig(),
                full_collision=False: build(spec.name, physics, full_collision))
     yield
 
@@ -133,12 +138,12 @@ def _start(cfg: experiment.ExperimentConfig, path: str, env: env_lib.MashEnv,
   if path.startswith("env."):
     env = env_lib.MashEnv(cfg.env)
     assert env.n_substeps >= 1 and env.action_size > 0
-  trainer = train_lib.make_train(cfg.train, env)
-  params = jax.eval_shape(trainer.networks.init, jax.random.PRNGKey(0))
-  jax.eval_shape(trainer.optimizer.init, params)
-  train_lib.seed_keys(cfg.train.seed, cfg.seeds)
+  algo = mappo.make_mappo(cfg.train, env)
+  params = jax.eval_shape(algo.networks.init, jax.random.PRNGKey(0))
+  jax.eval_shape(algo.optimizer.init, params)
+  trainer_lib.seed_keys(cfg.train.seed, cfg.seeds)
   if path in ("checkpoint_every", "keep_checkpoints"):
-    from mash import checkpoint
+    from mash.runs import checkpoint
     checkpoint.make_manager(tmp_path / "checkpoints", max_to_keep=cfg.keep_checkpoints).close()
 
 
@@ -207,7 +212,7 @@ def test_every_evaluation_number_is_refused_in_one_line_or_starts(smoke_env):
 
 def test_every_sim2sim_number_is_refused_in_one_line_or_starts(cached_models):
   def start(settings):  # the MuJoCo C model sim2sim steps
-    robots.build_model(robots.load(SMOKE.env.robot), sim2sim.physics(settings),
+    model_lib.build_model(robots.load(SMOKE.env.robot), sim2sim.physics(settings),
                        full_collision=settings.full_collision)
 
   accepted = _walk_settings(SIM2SIM_FIELDS, sim2sim.Sim2SimConfig(), sim2sim.check_config, start)
@@ -227,7 +232,7 @@ def test_the_command_lines_name_their_flags():
      "env.randomization.push_force must be a range (lo, hi) with -10000 <= lo <= hi <= 10000 N, "
      "got (nan, 20.0)"),
     ("train.num_envs=1000000000000",
-     "TrainConfig.num_envs must be at most 1048576, got 1000000000000."),
+     "TrainConfig.num_envs must be in [1, 1048576], got 1000000000000."),
     ("env.physics.sim_dt=0", "env.physics.sim_dt must be in (0, 0.1] s, got 0.0"),
 ], ids=["nan_push_force", "huge_num_envs", "zero_sim_dt"])
 def test_bad_numbers_on_the_command_line_are_one_line_and_exit_2(override, words, tmp_path):

@@ -3,9 +3,9 @@
 Three subprocesses of ``tests/distributed_worker.py`` run at once on 127.0.0.1: a pair of processes
 with one CPU device each, joined into a global 2-device mesh (the multi-host path, Gloo
 collectives), and one process with two forced CPU devices. Both train the toy env with the same
-config and key through :func:`mash.distributed.make_distributed_trainer` for two jitted calls; the
+config and key through :func:`mash.rl.trainer.make_trainer` (with a mesh) for two jitted calls; the
 pair also saves and restores its global state with Orbax, then trains again through
-:func:`mash.runs.train` (the CLI's loop) into a run directory, stopping after one call and resuming. Every parameter, statistic and metric must
+:func:`mash.runs.loop.train` (the CLI's loop) into a run directory, stopping after one call and resuming. Every parameter, statistic and metric must
 agree: between the two processes of the pair exactly (replicated values), and between the pair and
 the single process to float tolerance (only the collective's implementation differs).
 """
@@ -24,7 +24,7 @@ import jax
 import numpy as np
 import pytest
 
-from mash import distributed
+from mash.rl import distributed
 
 ROOT = Path(__file__).resolve().parent.parent
 WORKER = ROOT / 'tests' / 'distributed_worker.py'
@@ -146,19 +146,16 @@ def test_run_directory_of_two_processes(results):
   key: bit for bit, so the resume restored the global state exactly); a second non-resume run
   into the directory is refused by both processes; one process restores the policy."""
   import json
-  from mash import runs, train, trainers
-  from mash.config import TrainConfig
-  from mash.toy_env import make_toy_env
-  sys.path.insert(0, str(ROOT / 'tests'))
-  from distributed_worker import CONFIG
+  from mash.runs import loop as runs
+  from mash.rl import trainer as trainer_lib
+  from toy_env import make_toy_env
 
   run, pair = results['run_dir'], [results['pair0'], results['pair1']]
   for r in pair:
     assert int(r['run_first_iterations']) == 2 and int(r['run_iterations']) == 4
     assert int(r['run_devices']) == 2 and int(r['run_processes']) == 2
     assert 'already holds a run' in str(r['run_refused']) or 'refused' in str(r['run_refused'])
-  for name in ('config.json', 'progress.csv', 'progress_seeds.csv', 'summary.json',
-               'reward_curve.png'):
+  for name in ('config.json', 'progress.csv', 'summary.json', 'reward_curve.png'):
     assert (run / name).is_file(), name
   assert sorted(p.name for p in (run / 'checkpoints').iterdir() if p.name.isdigit()) == ['2', '4']
   summary = json.loads((run / 'summary.json').read_text())
@@ -171,8 +168,7 @@ def test_run_directory_of_two_processes(results):
 
   # One process (no mesh) reads the policy the two processes saved, as evaluate/export do.
   cfg = runs.load_config(run)
-  trainer = trainers.one_seed(train.make_train(TrainConfig(**CONFIG),
-                                              make_toy_env('legs_arms', 'mash')), cfg.train.seed)
+  trainer = trainer_lib.make_trainer(cfg.train, make_toy_env('legs_arms', 'mash'))
   restored = runs.restore_run(run, trainer, fields=('params', 'normalizer'))
   assert restored.step == 4
   flat = {'params/' + jax.tree_util.keystr(p): np.asarray(x)
@@ -207,23 +203,24 @@ def test_cli_process_flags_reject_bad_values(flags, env, words, monkeypatch):
   """The training CLI's --coordinator/--num-processes/--process-id (or MASH_* variables): every
   mistake is one UserError (one line, exit 2) before anything joins or runs."""
   import argparse
-  from experiments import common
-  for name in common.DISTRIBUTED_ENV.values():
+  from mash.cli import UserError
+  from mash.runs import launch
+  for name in launch.DISTRIBUTED_ENV.values():
     monkeypatch.delenv(name, raising=False)
   for name, value in env.items():
     monkeypatch.setenv(name, value)
   args = argparse.Namespace(**{'coordinator': None, 'num_processes': None, 'process_id': None,
                                **flags})
-  with pytest.raises(common.UserError, match=re.escape(words)):
-    common.join_processes(args)
+  with pytest.raises(UserError, match=re.escape(words)):
+    launch.join_processes(args)
 
 
 def test_cli_one_process_by_default(monkeypatch):
   import argparse
-  from experiments import common
-  for name in common.DISTRIBUTED_ENV.values():
+  from mash.runs import launch
+  for name in launch.DISTRIBUTED_ENV.values():
     monkeypatch.delenv(name, raising=False)
-  assert common.join_processes(argparse.Namespace(coordinator=None, num_processes=None,
+  assert launch.join_processes(argparse.Namespace(coordinator=None, num_processes=None,
                                                   process_id=None)) is True
-  assert common.join_processes(argparse.Namespace(coordinator='127.0.0.1:1', num_processes='1',
+  assert launch.join_processes(argparse.Namespace(coordinator='127.0.0.1:1', num_processes='1',
                                                   process_id='0')) is True

@@ -1,4 +1,4 @@
-"""Tests for mash.env, mash.randomize and the T1 robot spec.
+"""Tests for mash.sim.env, mash.sim.randomize and the T1 robot spec.
 
 Most tests call pure functions (``pd_torque``, ``quat_to_euler``, ``MashEnv.observe`` on hand-built
 sensor dicts, ``randomize.sample`` / ``apply``): no MJX step, so nothing slow to compile. Three
@@ -18,11 +18,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mash import env as env_lib
-from mash import evaluation
-from mash import randomize
-from mash import rewards
-from mash import robots
+from mash.sim import env as env_lib
+from mash.analysis import evaluation
+from mash.sim import randomize
+from mash.sim import rewards
+from mash.sim import robots
+from mash.sim import env_config
+from mash.sim import geometry
 
 T1 = robots.load("booster_t1")
 DR_OFF = randomize.DomainRandConfig(enabled=False)
@@ -45,7 +47,7 @@ def _make_simulate(env):
       qpos = state.pipeline_state.qpos
       trace = dict(
           qpos=qpos, qvel=state.pipeline_state.qvel, z=qpos[:, 2],
-          euler=jax.vmap(env_lib.quat_to_euler)(qpos[:, 3:7]), done=state.done,
+          euler=jax.vmap(geometry.quat_to_euler)(qpos[:, 3:7]), done=state.done,
           reward=state.reward, metrics=state.metrics, step=state.info["step"],
           env_steps=state.info["env_steps"],
           truncation=state.info["truncation"], fall=state.info["fall"],
@@ -192,15 +194,15 @@ def test_pd_torque_clips_at_limits():
 
 def test_quat_to_euler_matches_scipy():
   """ZYX roll/pitch/yaw from a (w, x, y, z) quaternion, against scipy's intrinsic 'ZYX'."""
-  chex.assert_trees_all_close(env_lib.quat_to_euler(jnp.array([1.0, 0, 0, 0])), jnp.zeros(3))
+  chex.assert_trees_all_close(geometry.quat_to_euler(jnp.array([1.0, 0, 0, 0])), jnp.zeros(3))
   # Rotation about x by 0.3: q = (cos 0.15, sin 0.15, 0, 0) -> roll 0.3.
   q = jnp.array([np.cos(0.15), np.sin(0.15), 0.0, 0.0])
-  chex.assert_trees_all_close(env_lib.quat_to_euler(q), jnp.array([0.3, 0.0, 0.0]), atol=1e-6)
+  chex.assert_trees_all_close(geometry.quat_to_euler(q), jnp.array([0.3, 0.0, 0.0]), atol=1e-6)
   rng = np.random.default_rng(0)
   for _ in range(5):
     rpy = rng.uniform([-1.0, -1.2, -3.0], [1.0, 1.2, 3.0])
     x, y, z, w = Rotation.from_euler("ZYX", rpy[::-1]).as_quat()
-    chex.assert_trees_all_close(env_lib.quat_to_euler(jnp.array([w, x, y, z])),
+    chex.assert_trees_all_close(geometry.quat_to_euler(jnp.array([w, x, y, z])),
                                 jnp.asarray(rpy, jnp.float32), atol=1e-5)
 
 
@@ -226,7 +228,7 @@ def test_actor_history_stacks_the_last_steps_newest_first():
   """actor_history 3: agents observe 3 x 32 (3 x 50 for the single PPO agent); at reset the frame
   three times; after a step the new frame, then the two newest of the previous observation; the
   critic keeps its one step. Export refuses such a policy in one line."""
-  from mash import export
+  from mash.deploy import export
   env = env_lib.make_env("bipedal", "mash", actor_history=3)
   assert env.observation_size == {"legs": (2, 96), "critic": (106,)}
   assert env.frame_dims == {"legs": 32}
@@ -243,8 +245,8 @@ def test_actor_history_stacks_the_last_steps_newest_first():
   np.testing.assert_array_equal(obs["critic"], frames[3]["critic"])
   with pytest.raises(export.ExportError, match="actor_history=3"):
     export.layout(env)
-  with pytest.raises(ValueError, match="actor_history must be >= 1"):
-    env_lib.check_config(env_lib.EnvConfig(actor_history=0))
+  with pytest.raises(ValueError, match=r"actor_history must be in \[1, 100\] control steps"):
+    env_config.check_config(env_config.EnvConfig(actor_history=0))
 
 
 def test_local_critic_sees_each_agents_newest_frame_with_actor_history():
@@ -438,7 +440,7 @@ def test_friction_curriculum_range_hand_values():
   off = (dataclasses.replace(cfg, friction_ramp_steps=0),
          dataclasses.replace(cfg, friction_initial=None))
   assert all(randomize.friction_range(c, jnp.int32(0)) == (0.1, 1.2) for c in off)
-  env_cfg = env_lib.EnvConfig(randomization=cfg)
+  env_cfg = env_config.EnvConfig(randomization=cfg)
   assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
                                     ).randomization.friction_ramp_steps == 0
 
@@ -457,7 +459,7 @@ def test_slippery_share_draws_that_share_of_floors_from_its_range():
   np.testing.assert_allclose((np.asarray(plain.friction) < 0.3).mean(), 0.2 / 1.1, atol=0.01)
   for field in ("mass_scale", "com_offset", "armature", "kp_scale"):
     np.testing.assert_array_equal(getattr(mixed, field), getattr(plain, field))
-  env_cfg = env_lib.EnvConfig(randomization=randomize.DomainRandConfig(slippery_share=0.25))
+  env_cfg = env_config.EnvConfig(randomization=randomize.DomainRandConfig(slippery_share=0.25))
   assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
                                     ).randomization.slippery_share == 0.0
 
@@ -665,7 +667,7 @@ def test_assemble_action_puts_each_agent_on_its_own_joints(armswing_env):
   on its joint j, arms agent k 200 + 10 k + j. Armswing controls the T1's joints in spec order
   (left leg 6, right leg 6, left arm 4, right arm 4), so the flat action reads those numbers in
   that order, and each lands on a joint of its own limb."""
-  from mash import agents
+  from mash.sim import agents
   legs = np.array([[100 * k + j for j in range(6)] for k in range(2)], np.float32)
   arms = np.array([[200 + 10 * k + j for j in range(4)] for k in range(2)], np.float32)
   flat = np.asarray(agents.assemble_action(armswing_env.agent_groups,

@@ -15,21 +15,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mash import env as env_lib, experiment, rewards, robots, runs
+from mash.sim import env as env_lib
+from mash.runs import experiment
+from mash.sim import rewards
+from mash.sim import robots
+from mash.runs import loop as runs
+from mash.sim import env_config
 
 
 def _with_robot_numbers(cfg: experiment.ExperimentConfig) -> experiment.ExperimentConfig:
   """``cfg`` with the numbers it leaves to its robot filled in, as the env sees it (a recorded
   config.json from before the robot files holds them explicitly)."""
-  return dataclasses.replace(cfg, env=env_lib.with_robot_numbers(cfg.env,
+  return dataclasses.replace(cfg, env=env_config.with_robot_numbers(cfg.env,
                                                                   robots.load(cfg.env.robot)))
 
 
 def test_smoke_run_writes_every_file(smoke_run):
-  """config.json, progress.csv with every column, checkpoints, summary, plot, TensorBoard events."""
-  for name in ("config.json", "progress.csv", "progress_seeds.csv", "summary.json",
-               "reward_curve.png"):
+  """config.json, progress.csv with every column, checkpoints, summary, plot, TensorBoard events;
+  no progress_seeds.csv, which for one seed would repeat progress.csv."""
+  for name in ("config.json", "progress.csv", "summary.json", "reward_curve.png"):
     assert (smoke_run / name).is_file(), name
+  assert not (smoke_run / "progress_seeds.csv").exists()
   assert any((smoke_run / "checkpoints").iterdir())
   assert any(p.name.startswith("events") for p in (smoke_run / "tensorboard").iterdir())
   progress = runs.read_progress(smoke_run)
@@ -124,8 +130,8 @@ def test_cpu_preset_is_the_measured_walking_run():
 
 def test_evaluate_writes_metrics_and_trajectories(smoke_run):
   """evaluate: metrics.json with SPEC §8 keys and trajectories.npz with SPEC §8 arrays."""
-  from mash import evaluation
-  from experiments.evaluate import evaluate_run
+  from mash.analysis import evaluation
+  from mash.analysis.reports import evaluate_run
   cfg = evaluation.EvalConfig(num_episodes=3, episode_s=1.0)
   result = evaluate_run(str(smoke_run), cfg)
   metrics = json.loads((smoke_run / "eval" / "metrics.json").read_text())
@@ -151,7 +157,7 @@ def test_evaluate_writes_metrics_and_trajectories(smoke_run):
   falls = sum(b["fall_rate"] * b["episodes"] for b in bands if b["episodes"])
   assert falls == pytest.approx(3 * metrics["fall_rate"])
   # The metrics are recomputable from the file.
-  from mash import metrics as metrics_lib
+  from mash.analysis import metrics as metrics_lib
   alive = traj["alive"].min(axis=1) > 0
   pick = alive if alive.any() else np.ones_like(alive)
   assert metrics_lib.action_smoothness(traj["actions"][pick]) == pytest.approx(
@@ -160,7 +166,7 @@ def test_evaluate_writes_metrics_and_trajectories(smoke_run):
 
 def test_falls_by_friction_against_a_hand_count():
   """Episodes binned by floor friction, out-of-range values into the end bands, empty bands None."""
-  from mash import evaluation
+  from mash.analysis import evaluation
   friction = np.array([0.05, 0.1, 0.2, 0.29, 0.3, 0.95, 1.2, 1.5])
   survived = np.array([False, True, False, False, True, True, False, True])
   bands = evaluation.falls_by_friction(friction, survived, edges=(0.1, 0.3, 0.6, 0.9, 1.2))
@@ -177,7 +183,8 @@ def test_falls_by_friction_against_a_hand_count():
 def test_metrics_up_to_the_fall_weigh_every_long_enough_episode():
   """Episode 0 survives 200 steps, episode 1 falls at step 100, episode 2 at step 30 (< 50, left
   out): each metric is the mean of episode 0's over 200 steps and episode 1's over its first 100."""
-  from mash import evaluation, metrics as metrics_lib
+  from mash.analysis import evaluation
+  from mash.analysis import metrics as metrics_lib
   rng = np.random.default_rng(0)
   traj = dict(actions=rng.normal(size=(3, 200, 12)), base_height=rng.normal(size=(3, 200)),
               euler=rng.normal(size=(3, 200, 3)), hip_pitch=rng.normal(size=(3, 200, 2)),
@@ -197,7 +204,7 @@ def test_metrics_up_to_the_fall_weigh_every_long_enough_episode():
 def test_evaluate_reports_arm_leg_coordination_when_the_arms_act():
   """armswing: C_limb_arm_leg from the shoulders against the opposite hips (here in phase: ~0);
   bipedal (arms held): not reported."""
-  from mash import evaluation
+  from mash.analysis import evaluation
   w = 2 * np.pi * np.arange(500) / 32
   hips = np.stack([np.sin(w), -np.sin(w)], -1)[None].repeat(2, 0)
   traj = dict(actions=np.zeros((2, 500, 20)), base_height=np.ones((2, 500)),
@@ -211,7 +218,7 @@ def test_evaluate_reports_arm_leg_coordination_when_the_arms_act():
 def test_evaluation_wiring_left_hip_first_and_alive_until_the_fall(smoke_config):
   """Seams of the evaluation: the hip-pitch index is (left, right) and the alive mask keeps the
   step that fell (its state is the fall's) and drops everything after, also a second done."""
-  from mash import env as env_lib, evaluation
+  from mash.analysis import evaluation
   env = env_lib.MashEnv(smoke_config.env)
   left, right = (env.spec.joints[i] for i in evaluation.hip_pitch_index(env))
   assert left == "Left_Hip_Pitch" and right == "Right_Hip_Pitch"
@@ -225,9 +232,9 @@ def test_evaluation_wiring_left_hip_first_and_alive_until_the_fall(smoke_config)
 def test_evaluation_without_pushes_keeps_the_other_randomization():
   """``--no-push``: pushes drawn as zero, every other randomized range as trained; its files go
   beside ``eval/``, never over it."""
-  from mash import env as env_lib, evaluation
-  from experiments.evaluate import eval_dir_name
-  trained = env_lib.EnvConfig()
+  from mash.analysis import evaluation
+  from mash.analysis.reports import eval_dir_name
+  trained = env_config.EnvConfig()
   no_push = evaluation.EvalConfig(pushes=False)
   r = evaluation.eval_env_config(trained, no_push).randomization
   assert r.enabled and r.push_force == (0.0, 0.0) and r.push_torque == (0.0, 0.0)
@@ -276,7 +283,7 @@ def test_evaluate_rejects_a_bad_friction_range(tmp_path):
 def test_evaluate_iteration_picks_that_checkpoint_or_names_the_saved_ones(smoke_run):
   """--iteration N restores the checkpoint of iteration N; one not saved is one error line that
   lists the saved iterations, and nothing is written."""
-  from mash import policy
+  from mash.deploy import policy
   assert policy.load(smoke_run, iteration=10).iteration == 10
   with pytest.raises(policy.RunError, match=r"no checkpoint of step 7 .*steps 10\)"):
     policy.load(smoke_run, iteration=7)
@@ -284,6 +291,11 @@ def test_evaluate_iteration_picks_that_checkpoint_or_names_the_saved_ones(smoke_
   lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
   assert out.returncode == 2 and len(lines) == 1 and "step 7" in lines[0], out.stderr
   assert not (smoke_run / "eval_it7").exists()
+
+
+def _stderr_lines(text: str) -> list[str]:
+  """Non-empty stderr lines, without MuJoCo's import notes about the optional warp backend."""
+  return [l for l in text.splitlines() if l.strip() and "warp" not in l]
 
 
 def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -325,8 +337,10 @@ def test_cli_refuses_existing_run_and_wrong_task(smoke_run, tmp_path):
 
 
 def test_compare_report_from_synthetic_results():
-  """report.md: the paper's table layout, our rows, Welch p-values, an honest verdict."""
-  from experiments.compare import build_report
+  """report.md: the paper's table layout, our rows, Welch p-values within each family (the
+  paper's four metrics decide, with their power figures), an honest verdict."""
+  from mash.analysis import metrics as metrics_lib
+  from mash.analysis.compare import build_report
   rng = np.random.default_rng(0)
 
   def seeds(base):
@@ -343,6 +357,15 @@ def test_compare_report_from_synthetic_results():
   tests = data["tests"]["S_action"]
   assert tests["p"] < 0.05 and tests["p_holm"] >= tests["p"] and tests["hedges_g"] < 0
   assert tests["verdict"] == "MASH better" and "- S_action: MASH better" in md
+  # The primary family is the paper's four metrics, Holm over those four: S_action's adjusted p
+  # is its p times 4 at most; its power at the observed g and the detectable g at alpha / 4.
+  assert data["families"]["primary"] == ["T_conv", "S_action", "S_torso", "C_limb"]
+  assert tests["family"] == "primary" and tests["p_holm"] <= 4 * tests["p"] + 1e-12
+  assert tests["alpha"] == pytest.approx(0.0125)
+  assert tests["power"] == pytest.approx(metrics_lib.t_test_power(tests["hedges_g"], 3, 3, 0.0125))
+  assert metrics_lib.t_test_power(tests["detectable_effect"], 3, 3, 0.0125) == pytest.approx(0.8)
+  assert data["tests"]["S_action_2nd"]["family"] == "secondary"
+  assert "power" not in data["tests"]["fall_rate"]
   # Equal fall rates: no difference.
   assert data["tests"]["fall_rate"]["verdict"] == "no difference at this power"
   md, data = build_report("bipedal", {"mash": seeds(2.0), "ppo": seeds(1.0)}, "smoke", 3)
@@ -359,9 +382,9 @@ def test_compare_report_from_synthetic_results():
   md, data = build_report("bipedal", both, "smoke", 3)
   assert "| C_limb (all episodes, up to the fall) |" in md
   assert data["table"]["ppo"]["all_episodes/C_limb"]["mean"] == pytest.approx(0.9)
-  assert "- C_limb over all episodes:" in md
+  assert data["tests"]["all_episodes/C_limb"]["family"] == "secondary"
+  assert "C_limb over all episodes" not in md  # the verdict is the primary family's alone
   # T_conv against the threshold common to both methods, one row per smoothing window.
-  from mash import metrics as metrics_lib
   it = np.arange(1, 101, dtype=float)
   fast, slow = np.minimum(10.0, 0.25 * it), np.minimum(10.0, 0.125 * it)
   conv = metrics_lib.common_threshold_t_conv({"mash": [fast, fast, fast],
@@ -370,14 +393,17 @@ def test_compare_report_from_synthetic_results():
   assert data["table"]["mash"]["T_conv@1"]["mean"] == pytest.approx(conv["t_conv"]["mash"][1][0])
   assert data["table"]["ppo"]["T_conv@1"]["n"] == 2  # the flat seed never reached it
   assert "window 2" in md and "never reached: Single-agent PPO 1 seed(s)" in md
-  # The README's table: the middle window's T_conv, ours beside the paper's, the verdict.
-  from experiments.compare import readme_table
+  # The README's table: the primary family (SPEC's T_conv beside the paper's), then the middle
+  # window's common-threshold T_conv and the rest of the secondary rows, with family and verdict.
+  from mash.analysis.compare import readme_table
   data = json.loads(json.dumps(data, default=float))  # as report.json holds it
   rows = readme_table([data]).splitlines()
-  t_conv = next(r for r in rows if "T_conv" in r)
-  assert "window 2" in t_conv and "| 1306 | 1661 |" in t_conv
+  t_conv = next(r for r in rows if "| T_conv (iterations) |" in r)
+  assert t_conv.startswith("| bipedal (3 seeds) |") and "| primary |" in t_conv
+  assert "| 1306 | 1661 |" in t_conv
+  common = next(r for r in rows if "(window 2)" in r)
   mean = data["table"]["mash"]["T_conv@2"]["mean"]
-  assert t_conv.startswith("| bipedal (3 seeds) |") and f"| {mean:.3g} ± " in t_conv
+  assert "| secondary |" in common and f"| {mean:.3g} ± " in common and "| – | – |" in common
   s_action = next(r for r in rows if "| S_action |" in r)
   assert "| MASH better | 0.107 | 0.547 |" in s_action
   assert not any("arm-leg" in r for r in rows)  # bipedal has no arm agents
@@ -386,7 +412,7 @@ def test_compare_report_from_synthetic_results():
 def test_readme_table_comes_from_the_committed_reports():
   """The README's MASH-vs-PPO table is what ``compare --readme-table`` prints from the reports
   its marker names (regenerate it with that command after a report changes)."""
-  from experiments.compare import README_BEGIN, README_END, readme_block
+  from mash.analysis.compare import README_BEGIN, README_END, readme_block
   repo = Path(__file__).resolve().parents[1]
   readme = (repo / "README.md").read_text()
   assert README_BEGIN in readme, "the README has no generated comparison table"
@@ -403,50 +429,79 @@ def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   """compare's plan per seed: nothing there -> new; a run stopped early -> resume, or restart
   when its checkpoints are not there; trained to the end -> done. Its report pairs the seeds evaluated for both methods."""
   import shutil
-  from experiments import compare
+  from mash.analysis import compare
+  from mash.runs import comparison
   smoke_run = evaluated_smoke_run
-  assert compare.seed_state(tmp_path / "none", 10) == "new"
+  assert comparison.seed_state(tmp_path / "none", 10) == "new"
   out = tmp_path / "cmp"
   for algo, seeds in (("mash", (0, 1)), ("ppo", (0,))):
     for s in seeds:
       shutil.copytree(smoke_run, out / algo / f"seed{s}")
-  assert compare.seed_state(out / "mash" / "seed0", 10) == "done"
-  assert compare.seed_state(out / "mash" / "seed0", 20) == "resume"  # a longer budget
+  assert comparison.seed_state(out / "mash" / "seed0", 10) == "done"
+  assert comparison.seed_state(out / "mash" / "seed0", 20) == "resume"  # a longer budget
   summary = out / "mash" / "seed1" / "summary.json"
   summary.write_text(json.dumps({**json.loads(summary.read_text()), "interrupted": True}))
-  assert compare.seed_state(out / "mash" / "seed1", 10) == "resume"
+  assert comparison.seed_state(out / "mash" / "seed1", 10) == "resume"
   # Cut off with its checkpoints on another machine: trained again, its records kept aside.
   shutil.copytree(out / "mash" / "seed1", out / "mash" / "seed2",
                   ignore=shutil.ignore_patterns("checkpoints"))
-  assert compare.seed_state(out / "mash" / "seed2", 10) == "restart"
-  assert compare.set_aside(out / "mash" / "seed2") == out / "mash" / "cut_off" / "seed2_0"
+  assert comparison.seed_state(out / "mash" / "seed2", 10) == "restart"
+  assert comparison.set_aside(out / "mash" / "seed2") == out / "mash" / "cut_off" / "seed2_0"
   assert (out / "mash" / "cut_off" / "seed2_0" / "config.json").is_file()
-  assert compare.seed_state(out / "mash" / "seed2", 10) == "new"
+  assert comparison.seed_state(out / "mash" / "seed2", 10) == "new"
   assert [d.name for d in compare.seed_dirs(out / "mash")] == ["seed0", "seed1"]
-  md, data, dirs = compare.build_from_dirs("bipedal", out, "smoke")
+  methods = {algo: out / algo for algo in ("mash", "ppo")}
+  md, data, dirs = compare.build_from_dirs("bipedal", out, "smoke", methods)
   assert data["seeds_paired"] == ["seed0"] and [d.name for d in dirs["ppo"]] == ["seed0"]
   assert "T_conv (paper reward reaches" in md
   wall = json.loads((out / "mash" / "seed0" / "summary.json").read_text())["wall_s"]
   assert "## Per seed" in md and "| 0 | MASH | " in md and f" | {wall:.0f} |" in md
-  compare.report("bipedal", out, "smoke")
+  compare.write_report("bipedal", out, "smoke", methods)
   for name in ("report.md", "report.json", "reward_curves.png", "hip_pitch.png"):
     assert (out / name).stat().st_size > 0
   # A clone holds the committed records only: no trajectories.npz, the hip trace instead.
   for algo in ("mash", "ppo"):
     (out / algo / "seed0" / "eval" / "trajectories.npz").unlink()
   (out / "hip_pitch.png").unlink()
-  compare.report("bipedal", out, "smoke")
+  compare.write_report("bipedal", out, "smoke", methods)
   assert (out / "hip_pitch.png").stat().st_size > 0
   # The tuning: one rule for both methods (the higher final reward; a tie to the smaller rate),
   # and the seed runs then live under the picked rate.
-  assert compare.pick_learning_rates({"mash": {1e-3: 150.0, 3e-4: 120.0},
+  assert comparison.pick_learning_rates({"mash": {1e-3: 150.0, 3e-4: 120.0},
                                       "ppo": {1e-3: 90.0, 3e-4: 90.0}}) == \
       {"mash": 1e-3, "ppo": 3e-4}
-  final = compare.final_reward(out / "mash" / "seed0")
+  final = comparison.final_reward(out / "mash" / "seed0")
   curve = compare.method_curves(out / "mash" / "seed0")[1][0]
   assert final == pytest.approx(curve[-1:].mean())  # 10 iterations: the last one
   (out / "tuning.json").write_text(json.dumps({"picked": {"mash": 1e-3, "ppo": 3e-4}}))
-  assert compare.method_dir(out, "ppo") == out / "ppo" / "lr0.0003"
+  assert comparison.method_dir(out, "ppo") == out / "ppo" / "lr0.0003"
+
+
+def _config_of(command: list[str]) -> str:
+  """The config.json a training command (as compare builds it) writes: from ``--config`` or the
+  preset, with its ``--seeds`` and ``--set`` (a stand-in for training keeps it faithful)."""
+  from mash.runs import experiment
+  task = command[command.index("-m") + 1].split(".")[-1]
+  sets = [command[i + 1] for i, c in enumerate(command) if c == "--set"]
+  seeds = int(command[command.index("--seeds") + 1]) if "--seeds" in command else 1
+  if "--config" in command:
+    cfg = experiment.config_from_file(command[command.index("--config") + 1], task, seeds, sets)
+  else:
+    cfg = experiment.make_config(task, command[command.index("--algo") + 1],
+                                 command[command.index("--preset") + 1], seeds, "none", sets)
+  return experiment.to_json(cfg)
+
+
+def _stand_ins(monkeypatch, training, evaluation, kept=None):
+  """compare's training, evaluation and policy keeping replaced by the given functions."""
+  import subprocess as subprocess_lib
+  from mash.analysis import reports
+  from mash.runs import comparison
+  monkeypatch.setattr(subprocess_lib, "call", training)
+  monkeypatch.setattr(reports, "evaluate_run", evaluation)
+  monkeypatch.setattr(comparison, "keep_policy",
+                      lambda run, seed_dir, seed=0: (kept if kept is not None else []).append(
+                          (run.name, seed_dir.name, seed)))
 
 
 def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, tmp_path,
@@ -455,14 +510,15 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   evaluates each rate's seed 0 in turn, the tie goes to the smaller rate, the other seeds train
   at it and each is evaluated before the next one trains; run again, it does nothing new."""
   import shutil
-  import subprocess as subprocess_lib
-  from experiments import compare, evaluate
+  from experiments import compare
+  from mash.analysis import compare as compare_lib
   smoke_run = evaluated_smoke_run
-  events = []
+  events, kept = [], []
 
   def fake_training(command):  # a finished run's records, as the CLI leaves them
     out = Path(command[command.index("--out") + 1])
     shutil.copytree(smoke_run, out, ignore=shutil.ignore_patterns("eval*"))
+    (out / "config.json").write_text(_config_of(command))
     events.append(("train", out.relative_to(tmp_path).as_posix()))
     return 0
 
@@ -474,9 +530,8 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
     (d / "eval" / "metrics.json").write_text(json.dumps(metrics))
     events.append(("eval", d.relative_to(tmp_path).as_posix()))
 
-  compare.hip_trace(smoke_run)  # a clone's records: the trace, not the trajectories
-  monkeypatch.setattr(subprocess_lib, "call", fake_training)
-  monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)
+  compare_lib.hip_trace(smoke_run)  # a clone's records: the trace, not the trajectories
+  _stand_ins(monkeypatch, fake_training, fake_evaluation, kept)
   argv = ["--preset", "smoke", "--seeds", "2", "--out", str(tmp_path / "cmp"), "--episodes", "4",
           "--no-progress"]
   compare.main(argv)
@@ -488,6 +543,10 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   assert tuning["picked"] == {"mash": 3e-4, "ppo": 3e-4}  # equal rewards: the smaller rate
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1"]
+  # Each run kept its policy and its record was compacted (the log gzipped, as committed).
+  assert sorted(kept) == sorted((d.split("/")[-1], d.split("/")[-1], 0) for d in runs_in_order)
+  assert (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv.gz").is_file()
+  assert not (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv").exists()
   events.clear()
   compare.main(argv)
   assert events == []
@@ -501,18 +560,20 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
   and the report pairs seeds 0-2; run again, it does nothing new."""
   import csv
   import shutil
-  import subprocess as subprocess_lib
-  from experiments import compare, evaluate
+  from experiments import compare
+  from mash.analysis import compare as compare_lib
+  from mash.runs import comparison
   smoke_run = evaluated_smoke_run
-  events = []
+  events, kept = [], []
 
   def fake_training(command):  # a finished run; a group's seed i has reward + 100 i
     out = Path(command[command.index("--out") + 1])
     seeds = int(command[command.index("--seeds") + 1]) if "--seeds" in command else 1
     shutil.copytree(smoke_run, out, ignore=shutil.ignore_patterns("eval*"))
-    with open(out / "progress_seeds.csv", newline="") as f:
+    (out / "config.json").write_text(_config_of(command))
+    with open(out / "progress.csv", newline="") as f:
       reader = csv.DictReader(f)
-      fields, rows = reader.fieldnames, [r for r in reader if float(r["seed"]) == 0]
+      fields, rows = [*reader.fieldnames, "seed"], list(reader)
     with open(out / "progress_seeds.csv", "w", newline="") as f:
       writer = csv.DictWriter(f, fields)
       writer.writeheader()
@@ -538,8 +599,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
     (d / "eval" / "metrics.json").write_text(json.dumps(metrics))
     events.append(("eval", d.relative_to(tmp_path).as_posix()))
 
-  monkeypatch.setattr(subprocess_lib, "call", fake_training)
-  monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluation)
+  _stand_ins(monkeypatch, fake_training, fake_evaluation, kept)
   argv = ["--preset", "smoke", "--seeds", "3", "--seeds-at-once", "2", "--out",
           str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"]
   compare.main(argv)
@@ -549,25 +609,120 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
       ("train", "cmp/ppo/lr0.0003/group_seeds1-2", "train.seed=1", 2),
       ("eval", "cmp/ppo/lr0.0003/group_seeds1-2")]
   mash = tmp_path / "cmp" / "mash" / "lr0.0003"
-  base = compare.method_curves(mash / "seed0")[1][0]
+  base = compare_lib.method_curves(mash / "seed0")[1][0]
   single = json.loads((smoke_run / "eval" / "metrics.json").read_text())
   for s in (1, 2):
     d = mash / f"seed{s}"
-    assert compare.seed_state(d, 10) == "done"
+    assert comparison.seed_state(d, 10) == "done"
     summary = json.loads((d / "summary.json").read_text())
     assert summary["group"] == "group_seeds1-2" and summary["group_index"] == s - 1
-    np.testing.assert_allclose(compare.method_curves(d)[1], [base + 100 * (s - 1)], rtol=1e-6)
+    np.testing.assert_allclose(compare_lib.method_curves(d)[1], [base + 100 * (s - 1)],
+                               rtol=1e-6)
     metrics = json.loads((d / "eval" / "metrics.json").read_text())
     assert metrics["fall_rate"] == metrics["per_seed"][0]["fall_rate"] == 0.01 + 0.1 * (s - 1)
     assert len(metrics["per_seed"]) == 1 and (d / "eval" / "hip_trace.npz").is_file()
     assert set(metrics) == set(single) and metrics["std"]["fall_rate"] == 0.0
-  assert [d.name for d in compare.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
+  assert [d.name for d in compare_lib.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
+  assert ("group_seeds1-2", "seed1", 0) in kept and ("group_seeds1-2", "seed2", 1) in kept
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1", "seed2"]
   assert " (group_seeds1-2) |" in (tmp_path / "cmp" / "report.md").read_text()
   events.clear()
   compare.main(argv)
   assert events == []
+
+def test_a_continued_comparison_keeps_its_own_config(evaluated_smoke_run, tmp_path, monkeypatch,
+                                                     capsys):
+  """A comparison continues on its folder's config, never today's preset: a new seed trains from
+  the config.json of the method's runs with only ``train.seed`` changed; a ``--preset`` that
+  would change it, or runs of one method that differ in more than the seed, are refused in one
+  line before anything trains."""
+  import shutil
+  from experiments import compare
+  from mash.runs import experiment
+  out = tmp_path / "cmp"
+  (out).mkdir()
+  (out / "tuning.json").write_text(json.dumps({"learning_rates": [1e-3], "seed": 0, "picked": {
+      "mash": 1e-3, "ppo": 1e-3}, "final": {"mash": {"0.001": 1.0}, "ppo": {"0.001": 1.0}}}))
+  for algo in ("mash", "ppo"):  # seed 0 trained on an earlier preset: another action scale
+    cfg = experiment.make_config("bipedal", algo, "smoke", 1, "none",
+                                 ["train.learning_rate=1e-3", "env.action_scale=0.3"])
+    seed0 = out / algo / "lr0.001" / "seed0"
+    shutil.copytree(evaluated_smoke_run, seed0)
+    (seed0 / "config.json").write_text(experiment.to_json(cfg))
+  commands = []
+
+  def fake_training(command):
+    commands.append(command)
+    run = Path(command[command.index("--out") + 1])
+    shutil.copytree(evaluated_smoke_run, run, ignore=shutil.ignore_patterns("eval*"))
+    (run / "config.json").write_text(_config_of(command))
+    return 0
+
+  def fake_evaluation(run_dir, cfg):
+    shutil.copytree(evaluated_smoke_run / "eval", Path(run_dir) / "eval", dirs_exist_ok=True)
+
+  _stand_ins(monkeypatch, fake_training, fake_evaluation)
+  argv = ["--seeds", "2", "--learning-rates", "1e-3", "--out", str(out), "--episodes", "3",
+          "--no-progress"]
+  with pytest.raises(SystemExit) as e:  # today's smoke preset is not the folder's config
+    compare.main([*argv, "--preset", "smoke"])
+  lines = _stderr_lines(capsys.readouterr().err)
+  assert e.value.code == 2 and len(lines) == 1 and "env.action_scale (0.3 -> 0.25)" in lines[0]
+  assert commands == []
+  compare.main(argv)
+  assert [c[c.index("--out") + 1].split("/cmp/")[1] for c in commands] == [
+      "mash/lr0.001/seed1", "ppo/lr0.001/seed1"]
+  for c, algo in zip(commands, ("mash", "ppo")):
+    assert c[c.index("--config") + 1] == str(out / algo / "lr0.001" / "seed0" / "config.json")
+    assert "--preset" not in c and [c[i + 1] for i, x in enumerate(c) if x == "--set"] == [
+        "train.seed=1"]
+    seed1 = json.loads((out / algo / "lr0.001" / "seed1" / "config.json").read_text())
+    assert seed1["env"]["action_scale"] == 0.3 and seed1["train"]["seed"] == 1
+  # Runs of one method that differ in more than the seed cannot be paired in one report.
+  seed1 = out / "mash" / "lr0.001" / "seed1" / "config.json"
+  seed1.write_text(seed1.read_text().replace('"fall_tilt": 1.0', '"fall_tilt": 0.9'))
+  with pytest.raises(SystemExit) as e:
+    compare.main([*argv[:1], "3", *argv[2:]])
+  lines = _stderr_lines(capsys.readouterr().err)
+  assert e.value.code == 2 and len(lines) == 1 and "env.fall_tilt (1.0 -> 0.9)" in lines[0]
+  assert len(commands) == 2
+
+
+def test_config_file_trains_another_run_on_the_same_recipe(smoke_run, tmp_path):
+  """``--config FILE``: a run's config.json with ``--seeds`` and ``--set`` on top; another
+  task's file, a file that is not a config, or a preset beside it are one line each."""
+  from mash.runs import experiment
+  cfg = experiment.config_from_file(smoke_run / "config.json", "bipedal", 2, ["train.seed=7"])
+  reference = experiment.from_json((smoke_run / "config.json").read_text())
+  assert cfg.seeds == 2 and cfg.train.seed == 7
+  assert cfg.env == reference.env and cfg.preset == reference.preset
+  with pytest.raises(experiment.ConfigError, match="is a 'bipedal' config, not 'armswing'"):
+    experiment.config_from_file(smoke_run / "config.json", "armswing")
+  (tmp_path / "bad.json").write_text("{")
+  with pytest.raises(experiment.ConfigError, match="bad.json"):
+    experiment.config_from_file(tmp_path / "bad.json", "bipedal")
+  out = _cli("experiments.bipedal", "--config", str(smoke_run / "config.json"), "--preset",
+                 "smoke", "--out", str(tmp_path / "x"))
+  assert out.returncode == 2 and "--config gives the whole config; --preset" in out.stderr
+  assert not (tmp_path / "x").exists()
+
+
+def test_keep_policy_writes_a_checked_policy_folder(smoke_run, tmp_path):
+  """compare keeps every run's policy: ``seed<s>/policy/`` with policy.npz, policy.json,
+  config.json and an ONNX graph that matches the JAX policy; not again once it is there."""
+  from mash.deploy import policy as policy_lib
+  from mash.runs import comparison
+  seed_dir = tmp_path / "seed5"
+  comparison.keep_policy(smoke_run, seed_dir)
+  folder = seed_dir / "policy"
+  for name in ("policy.npz", "policy.json", "config.json", "policy.onnx", "card.md"):
+    assert (folder / name).is_file(), name
+  assert policy_lib.load(folder).iteration == policy_lib.load(smoke_run).iteration
+  stamp = (folder / "policy.onnx").stat().st_mtime_ns
+  comparison.keep_policy(smoke_run, seed_dir)
+  assert (folder / "policy.onnx").stat().st_mtime_ns == stamp
+
 
 def test_expected_duration_line_from_the_timed_calls():
   """Calls of 4 s and 6 s with 10 iterations each: median 5 s = 0.5 s per iteration (2 it/s);
@@ -580,7 +735,7 @@ def test_expected_duration_line_from_the_timed_calls():
 def test_a_quiet_start():
   """Importing the package prints nothing: no 'Failed to import warp' lines from MJX's probe of
   its optional Warp backend."""
-  out = subprocess.run([sys.executable, "-c", "import mash.env, mash.runs, mash.evaluation"],
+  out = subprocess.run([sys.executable, "-c", "import mash.sim.env, mash.runs.loop, mash.analysis.evaluation"],
                        capture_output=True, text=True, timeout=120)
   assert out.returncode == 0 and out.stdout == "" and "warp" not in out.stderr, out
 
@@ -593,7 +748,8 @@ def test_wandb_logs_every_row_and_resumes_the_same_run(smoke_config, smoke_train
   pytest.importorskip("wandb", reason="Weights & Biases is an optional extra: pip install -e "
                       "'.[wandb]' (the dev extra has it)")
   import wandb
-  from mash import loggers, runs
+  from mash.runs import loggers
+  from mash.runs import loop as runs
   cfg = dataclasses.replace(smoke_config, wandb=True, checkpoint_every=1)
   calls = []
 

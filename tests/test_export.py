@@ -17,10 +17,15 @@ import numpy as np
 import onnx
 import pytest
 
-from mash import env as env_lib
-from mash import experiment, export, networks, normalization, runs
-from mash import policy as policy_lib
-from mash.config import TrainConfig
+from mash.sim import env as env_lib
+from mash.runs import experiment
+from mash.deploy import export
+from mash.rl import networks
+from mash.rl import normalization
+from mash.runs import loop as runs
+from mash.deploy import policy as policy_lib
+from mash.rl.config import TrainConfig
+from mash.sim import env_config
 
 TOL = 1e-5
 
@@ -29,7 +34,7 @@ def random_run(task: str, partition: str = "mash", share_actor: bool = True, see
                **env_overrides) -> export.PolicyParts:
   """The parts of a policy with random actor weights and normalizer on a real (uncompiled)
   MashEnv."""
-  env_cfg = env_lib.EnvConfig(task=task, partition=partition, **env_overrides)
+  env_cfg = env_config.EnvConfig(task=task, partition=partition, **env_overrides)
   env = env_lib.MashEnv(env_cfg)
   train_cfg = TrainConfig(actor_hidden=(32, 16), critic_hidden=(8,), share_actor=share_actor)
   nets = networks.make_networks(env.agent_groups, env.critic_obs_size, train_cfg)
@@ -113,7 +118,7 @@ def test_observation_layout_by_hand():
   # Bipedal MASH, J = 20 joints (legs 0-5, 6-11; arms 12-19), A = 12, L = 4 limbs. Feature row:
   # q_rel 0-19 | dq 20-39 | last_action 40-51 | sin 52-55 | cos 56-59 | euler 60-62 |
   # ang_vel 63-65 | command 66-69 | zero 70 | one 71.
-  env = env_lib.MashEnv(env_lib.EnvConfig(task="bipedal"))
+  env = env_lib.MashEnv(env_config.EnvConfig(task="bipedal"))
   lay = export.layout(env)
   assert (lay.width, lay.zero, lay.one) == (72, 70, 71)
   right_leg = lay.obs_index["legs"][1]  # joints 6..11, limb 1

@@ -1,7 +1,7 @@
-"""The public layout (``mash.layout``): sizes against hand counts for the T1's tasks, partitions
+"""The public layout (``mash.sim.layout``): sizes against hand counts for the T1's tasks, partitions
 and switches; segments that tile each observation; the env reporting the layout's sizes; each named
 segment of a real observation holding what its name says (one env build per task and robot); and
-no module but ``mash/env.py`` reading a ``MashEnv``'s private fields.
+no module but ``mash/sim/env.py`` reading a ``MashEnv``'s private fields.
 """
 
 from __future__ import annotations
@@ -17,18 +17,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mash import env as env_lib
-from mash import layout
-from mash import robots
-from mash import tasks
+from mash.sim import env as env_lib
+from mash.sim import layout
+from mash.sim import robots
+from mash.sim import tasks
+from mash.sim import env_config
 
 T1 = robots.load("booster_t1")
 REPO = Path(__file__).resolve().parents[1]
-CONFIGS = list(itertools.product(tasks.names(), env_lib.PARTITIONS, (True, False), (True, False)))
+CONFIGS = list(itertools.product(tasks.names(), env_config.PARTITIONS, (True, False), (True, False)))
 
 
 def _config(task="bipedal", partition="mash", agent_id=True, temporal_director=True, **kw):
-  return env_lib.EnvConfig(task=task, partition=partition, agent_id=agent_id,
+  return env_config.EnvConfig(task=task, partition=partition, agent_id=agent_id,
                            temporal_director=temporal_director, **kw)
 
 
@@ -175,7 +176,7 @@ def test_layout_needs_only_the_spec_and_the_config_fields():
   assert layout.build(T1, cfg).observation_size == {"legs": (2, 60), "critic": (106,)}
   with pytest.raises(ValueError, match="partition 'pairs' is unknown"):
     layout.build(T1, types.SimpleNamespace(**{**vars(cfg), "partition": "pairs"}))
-  with pytest.raises(ValueError, match="actor_history must be >= 1"):
+  with pytest.raises(ValueError, match=r"actor_history must be in \[1, 100\] control steps"):
     layout.build(T1, types.SimpleNamespace(**{**vars(cfg), "actor_history": 0}))
 
 
@@ -315,8 +316,8 @@ def test_the_scan_finds_private_reads():
 
 
 def test_no_module_but_env_reads_a_mash_env_private_field():
-  files = sorted((REPO / "mash").glob("*.py")) + sorted((REPO / "experiments").glob("*.py"))
+  files = sorted((REPO / "mash").rglob("*.py")) + sorted((REPO / "experiments").glob("*.py"))
   assert len(files) > 20
   found = {str(f.relative_to(REPO)): private_env_reads(f.read_text()) for f in files
-           if f != REPO / "mash" / "env.py"}
+           if f != REPO / "mash" / "sim" / "env.py"}
   assert {f: hits for f, hits in found.items() if hits} == {}

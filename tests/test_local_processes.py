@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from experiments import common
+from mash.cli import UserError
+from mash.runs import launch
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -29,13 +30,13 @@ def _args(**kw) -> argparse.Namespace:
 def test_auto_is_two_processes_for_one_seed_on_a_multicore_cpu(monkeypatch):
   monkeypatch.delenv("MASH_NUM_PROCESSES", raising=False)
   monkeypatch.setattr(os, "cpu_count", lambda: 2)
-  assert common.local_processes_wanted(_args(), "cpu", 1) == 2  # JAX's backend here is the CPU
-  assert common.local_processes_wanted(_args(), "smoke", 1) == 1  # collectives outweigh a core
-  assert common.local_processes_wanted(_args(), "cpu", 3) == 1    # seeds train in one process
-  assert common.local_processes_wanted(_args(num_processes="2"), "cpu", 1) == 1  # joined by hand
+  assert launch.local_processes_wanted(_args(), "cpu", 1) == 2  # JAX's backend here is the CPU
+  assert launch.local_processes_wanted(_args(), "smoke", 1) == 1  # collectives outweigh a core
+  assert launch.local_processes_wanted(_args(), "cpu", 3) == 1    # seeds train in one process
+  assert launch.local_processes_wanted(_args(num_processes="2"), "cpu", 1) == 1  # joined by hand
   monkeypatch.setattr(os, "cpu_count", lambda: 1)
-  assert common.local_processes_wanted(_args(), "cpu", 1) == 1
-  assert common.local_processes_wanted(_args(local_processes="3"), "smoke", 1) == 3
+  assert launch.local_processes_wanted(_args(), "cpu", 1) == 1
+  assert launch.local_processes_wanted(_args(local_processes="3"), "smoke", 1) == 3
 
 
 @pytest.mark.parametrize("kw, words", [
@@ -44,8 +45,8 @@ def test_auto_is_two_processes_for_one_seed_on_a_multicore_cpu(monkeypatch):
     (dict(local_processes="2", coordinator="h:1"), "cannot be combined with --coordinator"),
 ])
 def test_bad_local_processes_is_a_user_error(kw, words):
-  with pytest.raises(common.UserError, match=words):
-    common.local_processes_wanted(_args(**kw), "cpu", 1)
+  with pytest.raises(UserError, match=words):
+    launch.local_processes_wanted(_args(**kw), "cpu", 1)
 
 
 WORKER = textwrap.dedent("""
@@ -70,8 +71,8 @@ WORKER = textwrap.dedent("""
 
 def _supervise(tmp_path: Path, *worker_args: str) -> subprocess.Popen:
   (tmp_path / "fake_worker.py").write_text(WORKER)
-  code = ("import sys; from experiments import common; "
-          f"sys.exit(common.run_local_processes('fake_worker', {list(worker_args)!r}, 2))")
+  code = ("import sys; from mash.runs import launch; "
+          f"sys.exit(launch.run_local_processes('fake_worker', {list(worker_args)!r}, 2))")
   env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)]))
   return subprocess.Popen([sys.executable, "-c", code], env=env, cwd=ROOT, text=True,
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE)

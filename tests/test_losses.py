@@ -1,4 +1,4 @@
-"""Tests of mash.losses: GAE against a plain loop and hand cases, the MAPPO loss against hand arithmetic."""
+"""Tests of mash.rl.losses: GAE against a plain loop and hand cases, the MAPPO loss against hand arithmetic."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import losses
-from mash.config import TrainConfig
+from mash.rl import losses
+from mash.rl.config import TrainConfig
 
 
 def gae_loop(rewards, values, next_values, dones, truncs, gamma, lam):

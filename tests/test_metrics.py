@@ -1,11 +1,11 @@
-"""Tests for mash.metrics (hand-computed expectations in comments)."""
+"""Tests for mash.analysis.metrics (hand-computed expectations in comments)."""
 
 import warnings
 
 import numpy as np
 import pytest
 
-from mash import metrics
+from mash.analysis import metrics
 
 # 1000 samples, period 100 -> exactly 10 periods, so the FFT-based Hilbert
 # transform is exact (no edge trimming needed).

@@ -1,4 +1,4 @@
-"""Tests of mash.networks and mash.normalization: shapes, parameter sharing, value heads, statistics."""
+"""Tests of mash.rl.networks and mash.rl.normalization: shapes, parameter sharing, value heads, statistics."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import networks as nets
-from mash import normalization
-from mash.train import FAST_COMPILE_OPTIONS
-from mash.agents import assemble_action
-from mash.config import TrainConfig
-from mash.toy_env import make_toy_env
+from mash.rl import networks as nets
+from mash.rl import normalization
+from mash.rl.trainer import FAST_COMPILE_OPTIONS
+from mash.sim.agents import assemble_action
+from mash.rl.config import TrainConfig
+from toy_env import make_toy_env
 
 SMALL = dict(actor_hidden=(16, 16), critic_hidden=(16,))
 

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 from experiments import play
+from mash.deploy import play as play_lib
+from mash.deploy import video as video_lib
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,14 +23,13 @@ def _headless_env() -> dict[str, str]:
 
 
 def test_shipped_policies_are_listed():
-  assert "t1_bipedal_mash" in play.shipped_policies()
+  assert "t1_bipedal_mash" in play_lib.shipped_policies()
 
 
 def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
   """Two seconds of the shipped T1 policy at 0.4 m/s, in a subprocess (MUJOCO_GL is chosen before
   mujoco is imported): it walks, says so, and the MP4 is there."""
-  from experiments.sim2sim import headless_gl
-  backend, reason = headless_gl()
+  backend, reason = video_lib.headless_gl()
   if backend is None:
     skip_for_missing_gl(reason)
   video = tmp_path / "walk.mp4"
@@ -43,7 +44,12 @@ def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
 
 @pytest.mark.parametrize("argv, words", [
     (["--policy", "no_such_policy"], "--policy 'no_such_policy': expected a shipped policy name"),
-    (["--policy", "t1_bipedal_mash", "--command", "fast"], "expected VX[,VY[,YAW_RATE]]"),
+    (["--policy", "t1_bipedal_mash", "--command", "fast"], "expected VX or VX,VY,YAW_RATE"),
+    (["--policy", "t1_bipedal_mash", "--command", "1,2"], "'1,2': expected VX or VX,VY,YAW_RATE"),
+    (["--policy", "t1_bipedal_mash", "--command", "2.5"],
+     "--command vx 2.5 m/s is outside the range the policy was trained on, [-0.3, 0.8] m/s, by "
+     "more than half its width; expected a command within [-0.85, 1.35] m/s"),
+    (["--policy", "t1_bipedal_mash", "--command", "0.4,0,-2"], "--command yaw_rate -2 rad/s"),
     (["--policy", "t1_bipedal_mash", "--seconds", "nan"], "expected a duration in (0, 3600]"),
     (["--policy", "t1_bipedal_mash", "--video", "walk.avi"], "expected a .mp4 (or .gif) file name"),
     (["--policy", "t1_bipedal_mash", "--video", "/proc/x.mp4"], "--video '/proc/x.mp4' cannot be"),
@@ -51,9 +57,22 @@ def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
 def test_bad_inputs_are_one_line(capsys, monkeypatch, argv, words):
   monkeypatch.delenv("DISPLAY", raising=False)
   monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-  monkeypatch.setattr("experiments.sim2sim.headless_gl", lambda: ("egl", ""))
+  monkeypatch.setattr(video_lib, "headless_gl", lambda: ("egl", ""))
   with pytest.raises(SystemExit) as e:
     play.main(argv)
   err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
   assert e.value.code == 2 and len(err) == 1 and err[0].startswith("error: "), err
   assert words in err[0], err
+
+
+def test_a_command_just_outside_the_trained_range_plays_with_a_warning():
+  """Within half the range's width beyond it: one warning line, no error (the policy never met
+  the command, but a user may want to see how it copes); inside: silence; no config: no check."""
+  said = []
+  ranges = {"vx": (-0.3, 0.8), "vy": (-0.2, 0.2), "yaw_rate": (-0.5, 0.5)}
+  play_lib.check_command((1.0, 0.0, 0.0), ranges, said.append)
+  assert len(said) == 1 and said[0].startswith("warning: --command vx 1 m/s is outside")
+  said.clear()
+  play_lib.check_command((0.8, -0.2, 0.5), ranges, said.append)
+  play_lib.check_command((9.0, 9.0, 9.0), None, said.append)
+  assert said == []

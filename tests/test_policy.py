@@ -1,9 +1,9 @@
-"""mash.policy: a trained policy loaded without the trainer, saved as a small folder, and the import
-graph of the deployment code (evaluate, export, sim2sim), which must not reach training code.
+"""mash.deploy.policy: a trained policy loaded without the trainer, saved as a small folder, and the import
+graph of the deployment code (evaluate, export, play, sim2sim), which must not reach training code.
 
 The reference of the first test is the trainer itself: the smoke run's checkpoint restored into the
 trainer's own state template (``runs.restore_run``, the way evaluation loaded policies before
-``mash.policy``) and applied through the trainer's networks.
+``mash.deploy.policy``) and applied through the trainer's networks.
 """
 
 from __future__ import annotations
@@ -22,14 +22,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import checkpoint, experiment, networks, runs
-from mash import env as env_lib
-from mash import policy as policy_lib
+from mash.runs import checkpoint
+from mash.runs import experiment
+from mash.rl import networks
+from mash.runs import loop as runs
+from mash.sim import env as env_lib
+from mash.deploy import policy as policy_lib
 
 REPO = Path(__file__).resolve().parents[1]
-DEPLOYMENT = ("experiments.evaluate", "experiments.export", "experiments.sim2sim", "mash.policy",
-              "mash.export", "mash.sim2sim", "mash.evaluation")
-TRAINING = ("mash.train", "mash.distributed", "mash.runs", "optax")
+DEPLOYMENT = ("experiments.evaluate", "experiments.export", "experiments.play",
+              "experiments.sim2sim", "mash.cli", "mash.deploy.policy", "mash.deploy.export",
+              "mash.deploy.sim2sim", "mash.deploy.video", "mash.deploy.play",
+              "mash.deploy.native_report", "mash.analysis.evaluation", "mash.analysis.metrics",
+              "mash.analysis.reports")
+TRAINING = ("mash.rl.mappo", "mash.rl.trainer", "mash.rl.distributed", "mash.rl.losses",
+            "mash.runs.loop", "mash.runs.launch", "optax")
 
 
 def random_obs(env, batch: int, seed: int = 0) -> dict[str, jax.Array]:
@@ -57,17 +64,17 @@ def test_policy_acts_as_the_trainer(smoke_run, smoke_trainer, smoke_config):
   assert policy.iteration == int(restored.step) == smoke_config.train.num_iterations
   assert (policy.seed, policy.source, policy.config) == (0, str(smoke_run), smoke_config)
   assert set(policy.params) == {"actors"}  # no critic
-  assert set(policy.normalizer) == {g.name for g in smoke_trainer.trainer.env.agent_groups}
+  assert set(policy.normalizer) == {g.name for g in smoke_trainer.env.agent_groups}
   jax.tree.map(np.testing.assert_array_equal, policy.params["actors"],
                restored.state.params["actors"])
   for name, stats in policy.normalizer.items():
     jax.tree.map(np.testing.assert_array_equal, stats, restored.state.normalizer[name])
 
-  obs = random_obs(smoke_trainer.trainer.env, 64)
-  reference = jax.jit(networks.make_policy_fn(smoke_trainer.trainer.networks, deterministic=True))
+  obs = random_obs(smoke_trainer.env, 64)
+  reference = jax.jit(networks.make_policy_fn(smoke_trainer.networks, deterministic=True))
   want = np.asarray(reference(restored.state.params, restored.state.normalizer, obs))
   got = np.asarray(jax.jit(policy_lib.make_inference_fn(policy))(obs))  # its own env
-  assert got.shape == (64, smoke_trainer.trainer.env.action_size)
+  assert got.shape == (64, smoke_trainer.env.action_size)
   np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
   assert np.abs(want).max() > 1e-3  # the comparison is not between zeros
 
@@ -166,10 +173,12 @@ def test_paths_that_are_not_a_policy_are_one_line(smoke_run, tmp_path):
 
 _GRAPH_PROBE = """
 import json, sys
-import experiments.evaluate, experiments.export, experiments.sim2sim
-import mash.evaluation, mash.export, mash.policy, mash.sim2sim
+import experiments.evaluate, experiments.export, experiments.play, experiments.sim2sim
+import mash.analysis.evaluation, mash.analysis.reports, mash.deploy.export, mash.deploy.policy
+import mash.deploy.native_report, mash.deploy.play, mash.deploy.sim2sim, mash.deploy.video
 import jax.numpy as jnp
-from mash import env as env_lib, policy
+from mash.sim import env as env_lib
+from mash.deploy import policy
 run, folder, onnx = sys.argv[1:4]
 for source in (run, folder):
   p = policy.load(source)
@@ -182,12 +191,28 @@ print(json.dumps(sorted(m for m in json.loads(sys.argv[4]) if m in sys.modules))
 """
 
 
+def test_a_truncated_policy_archive_is_one_line(smoke_run, tmp_path):
+  """A policy folder whose policy.npz was cut short (a copy interrupted): one RunError line
+  naming the file, also through ``evaluate``, not a BadZipFile traceback."""
+  folder = policy_lib.save(policy_lib.load(smoke_run), tmp_path / "policy")
+  data = (folder / "policy.npz").read_bytes()
+  (folder / "policy.npz").write_bytes(data[:len(data) // 2])
+  with pytest.raises(policy_lib.RunError, match="policy.npz' is not a policy's arrays"):
+    policy_lib.load(folder)
+  out = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--run", str(folder),
+                        "--episodes", "1", "--seconds", "0.1"], cwd=REPO, capture_output=True,
+                       text=True, timeout=600, env=dict(os.environ, PYTHONPATH=str(REPO)))
+  lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
+  assert out.returncode == 2 and len(lines) == 1, out.stderr[-2000:]
+  assert lines[0].startswith("error: ") and "policy.npz' is not a policy's arrays" in lines[0]
+
+
 def test_deployment_does_not_import_training(smoke_run, tmp_path):
-  """In a fresh process: import evaluate, export, sim2sim (the entry points and their modules),
-  load the smoke run's policy and a policy folder, build the action function and export the
-  folder through the CLI; then no training module is loaded: not mash.train, mash.distributed or
-  mash.runs (which imports both), nor optax (the optimizer: flax.linen, which the networks use,
-  does not import it; only training does)."""
+  """In a fresh process: import evaluate, export, play, sim2sim (the entry points and their
+  modules), load the smoke run's policy and a policy folder, build the action function and export
+  the folder through the CLI; then no training module is loaded (:data:`TRAINING`: the trainer,
+  its losses, the host loop and the launcher, nor optax, the optimizer: flax.linen, which the
+  networks use, does not import it; only training does)."""
   folder = policy_lib.save(policy_lib.load(smoke_run), tmp_path / "policy")
   out = subprocess.run([sys.executable, "-c", _GRAPH_PROBE, str(smoke_run), str(folder),
                         str(tmp_path / "probe.onnx"), json.dumps(TRAINING)],
@@ -200,7 +225,7 @@ def test_deployment_does_not_import_training(smoke_run, tmp_path):
 
 def _imported_names(module: str) -> set[str]:
   """Every module an import statement of ``module``'s source names, top level or inside a
-  function (``from mash import runs`` names ``mash`` and ``mash.runs``)."""
+  function (``from mash import runs`` names ``mash`` and ``mash.runs.loop``)."""
   path = REPO / (module.replace(".", "/") + ".py")
   names = set()
   for node in ast.walk(ast.parse(path.read_text())):

@@ -24,8 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import checkpoint, losses, policy, robots, runs
-from mash.config import TrainConfig
+from mash.runs import checkpoint
+from mash.rl import losses
+from mash.deploy import policy
+from mash.sim import robots
+from mash.runs import loop as runs
+from mash.rl.config import TrainConfig
+from mash.sim import model as model_lib
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -109,7 +114,7 @@ def test_masked_samples_leave_advantage_statistics_and_loss():
 
 def test_toy_env_step_from_nan_state():
   """The toy env treats a NaN state as the real env does: done, zero reward, finite outputs."""
-  from mash.toy_env import make_toy_env
+  from toy_env import make_toy_env
   env = make_toy_env("legs", "mash")
   states = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), 2))
   ps = states.pipeline_state
@@ -153,17 +158,17 @@ def test_mjx_trainer_survives_nan_and_inf_states(smoke_trainer):
 
 # ------------------------------------------------------------------------------- 2. bad input
 def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
-  """robots.build_model names the joint; the CLI wrapper prints it as one line, exit 2."""
-  from experiments import common
+  """model_lib.build_model names the joint; the CLI wrapper prints it as one line, exit 2."""
+  from mash import cli as common
   t1 = robots.load("booster_t1")
   leg = t1.limbs[0]
   typo = dataclasses.replace(leg, joints=(leg.joints[0] + "_typo",) + leg.joints[1:])
   bad = dataclasses.replace(t1, limbs=(typo,) + t1.limbs[1:])
   with pytest.raises(robots.SpecError, match=rf"joint '{leg.joints[0]}_typo' \(limb 'left_leg', "
                      r"role 'hip_pitch'\) is not in the model"):
-    robots.build_model(bad)
+    model_lib.build_model(bad)
   with pytest.raises(SystemExit) as e, common.user_errors():
-    robots.build_model(bad)
+    model_lib.build_model(bad)
   assert e.value.code == 2
   lines = _stderr_lines(capsys.readouterr().err)
   assert len(lines) == 1 and lines[0].startswith("error: robot 'booster_t1': joint"), lines
@@ -171,12 +176,8 @@ def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
 
 def _main_error(capsys, module: str, argv: list[str]) -> str:
   """Runs an entry point in this process; returns its one error line (exit status 2)."""
-  if module in ("evaluate", "export", "sim2sim"):
-    main = __import__(f"experiments.{module}", fromlist=["main"]).main
-    run = lambda: main(argv)
-  else:
-    from experiments.train_task import main
-    run = lambda: main(module, argv)
+  main = __import__(f"experiments.{module}", fromlist=["main"]).main
+  run = lambda: main(argv)
   with pytest.raises(SystemExit) as e:
     run()
   captured = capsys.readouterr()
@@ -194,13 +195,13 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
     (["--set", "env.reward_params.ramped_terms=torque_rat"],
      "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
     (["--set", "env.reward_params.tracking_boost=0.5"],
-     "env.reward_params.tracking_boost must be >= 1"),
+     "env.reward_params.tracking_boost must be in [1, 100]"),
     (["--set", "env.randomization.friction_initial=0.3,0.1"],
      "env.randomization.friction_initial must be a range (lo, hi) with 0 < lo <= hi"),
     (["--set", "env.randomization.friction_ramp_steps=-5"],
-     "env.randomization.friction_ramp_steps must be >= 0"),
+     "env.randomization.friction_ramp_steps must be in [0, 2147483647] steps"),
     (["--set", "algo=sac"], "algo 'sac' is unknown"),
-    (["--set", "train.num_envs=0"], "num_envs must be >= 1"),
+    (["--set", "train.num_envs=0"], "num_envs must be in [1, 1048576]"),
     (["--set", "train.learning_rate_schedule=cosine"],
      "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl, linear"),
     (["--seeds", "0"], "seeds must be >= 1"),
@@ -228,19 +229,19 @@ def test_benchmark_bad_stage_is_one_line(capsys):
 
 def test_benchmark_ratios_only_for_measured_pairs():
   """A partial run (``--stages env,mash,brax_ppo``) reports the ratios it can, nothing else."""
-  from experiments import benchmark
+  from mash.bench import benchmark
   result = {"env_steps_per_s": 1000.0, "env_physics_equivalent_per_s": 4000.0,
             "train_env_steps_per_s": {"mash": 750.0, "brax_ppo": 600.0}}
-  assert benchmark._ratios(result) == {"mash_train_vs_env": 0.75, "mash_vs_brax_ppo": 1.25}
+  assert benchmark.ratios(result) == {"mash_train_vs_env": 0.75, "mash_vs_brax_ppo": 1.25}
   result.update(physics_steps_per_s=5000.0, train_env_steps_per_s={"mash": 750.0, "ppo": 800.0})
-  assert benchmark._ratios(result) == {"env_vs_physics": 0.8, "mash_train_vs_env": 0.75,
+  assert benchmark.ratios(result) == {"env_vs_physics": 0.8, "mash_train_vs_env": 0.75,
                                        "mash_vs_ppo": 0.9375}
 
 
 def test_device_scaling_writes_table_and_plot(tmp_path):
   """``benchmark_devices`` writes its JSON, a markdown table with every row, and the PNG plot."""
   import json
-  from experiments import benchmark_devices
+  from mash.bench import devices
   row = lambda variant, n, sps, ratio: {
       "variant": variant, "processes": n, "envs_per_process": 256 // n, "env_steps_per_s": sps,
       "physics_steps_per_s": 4 * sps, "cpu_cores_used": float(n), "compile_s": 30.0,
@@ -253,7 +254,7 @@ def test_device_scaling_writes_table_and_plot(tmp_path):
                      row("train_one_process", 1, 800.0, 1.0),
                      row("train_two_process", 2, 1200.0, 1.5)]}
   stem = tmp_path / "scaling_devices"
-  benchmark_devices._write(result, stem)
+  devices.write_report(result, stem)
   assert json.loads(stem.with_suffix(".json").read_text()) == result
   table = stem.with_suffix(".md").read_text()
   assert "| two_process_mesh | 2 | 128 | 1.9e+03 |" in table and "**1.90x**" in table
@@ -285,7 +286,7 @@ def test_cli_bad_run_directories_are_one_line(capsys, smoke_run, tmp_path):
 
 @pytest.mark.parametrize("command, argv, words", [
     ("bipedal", ["--preset", "smoke", "--set", "train.learning_rate=nan"],
-     "TrainConfig.learning_rate must be a finite number > 0, got nan"),
+     "TrainConfig.learning_rate must be in (0, 1], got nan"),
     ("bipedal", ["--preset", "smoke", "--set", "train.actor_hidden=0"],
      "TrainConfig.actor_hidden must be one or more layer sizes >= 1"),
     ("bipedal", ["--preset", "smoke", "--set", "train.gamma=inf"], "TrainConfig.gamma must be in"),
@@ -328,7 +329,7 @@ def second_run(tmp_path_factory, smoke_config, smoke_trainer, smoke_run):
 
 def test_same_seed_gives_bit_identical_progress(smoke_run, second_run):
   """Same seed, same device count: every logged number is equal (``wall_s`` aside)."""
-  for name in ("progress.csv", "progress_seeds.csv"):
+  for name in ("progress.csv",):
     a, b = _rows_without_wall(smoke_run / name), _rows_without_wall(second_run / name)
     assert len(a) == 10 and a == b, name
 
@@ -447,7 +448,7 @@ def uninterrupted(tmp_path_factory, smoke_config, smoke_trainer):
 def _assert_same_end(run: Path, reference: Path, trainer) -> None:
   """Both runs logged the same rows (``wall_s`` aside) and their newest checkpoints hold the same
   train state, bit for bit."""
-  for name in ("progress.csv", "progress_seeds.csv"):
+  for name in ("progress.csv",):
     assert _rows_without_wall(run / name) == _rows_without_wall(reference / name), name
   a, b = runs.restore_run(run, trainer), runs.restore_run(reference, trainer)
   assert a.step == b.step
@@ -502,7 +503,7 @@ def test_a_users_hook_runs_after_the_logs_and_checkpoints(smoke_config, smoke_tr
 def test_sigterm_saves_and_a_second_signal_aborts(smoke_config, smoke_trainer, tmp_path):
   """SIGTERM during call 1: the call finishes, step 5 is saved, the summary says SIGTERM (exit
   143). Two SIGINTs before call 2 of another run: it aborts at once, step 5 stays loadable."""
-  from experiments import common
+  from mash import cli as common
   cfg = _fifteen(smoke_config)
   trainer = _signal_on_call(smoke_trainer, {1: [signal.SIGTERM]})
   summary = runs.train(cfg, tmp_path / "term", show_progress=False, trainer=trainer)
@@ -590,7 +591,7 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
   assert policy.load(out).iteration == 5
   assert _iterations(out) == list(range(1, 11))
 
-  for name in ("progress.csv", "progress_seeds.csv"):
+  for name in ("progress.csv",):
     text = (out / name).read_bytes()
     (out / name).write_bytes(text[:text.rindex(b"\n10,") + 2])
   _wait_killed(_worker(tmp_path / "marks3", "call:2", resume),
@@ -619,7 +620,7 @@ def _no_space(path) -> OSError:
 
 def _refused(capfd, run) -> str:
   """Runs ``run()`` under the CLI's error handling; returns its one error line (exit status 1)."""
-  from experiments import common
+  from mash import cli as common
   capfd.readouterr()
   with pytest.raises(SystemExit) as e, common.user_errors():
     run()
@@ -766,6 +767,6 @@ def test_a_refused_write_in_any_command_is_one_line(capfd, error, line):
     raise error
 
   assert _refused(capfd, fail) == line
-  from experiments import common
+  from mash import cli as common
   with pytest.raises(FileNotFoundError), common.user_errors():
     Path("/nonexistent/metrics.json").write_text("{}")

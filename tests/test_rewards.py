@@ -1,4 +1,4 @@
-"""Tests for mash.rewards: each of the sixteen terms against a hand computation (arithmetic in the
+"""Tests for mash.sim.rewards: each of the sixteen terms against a hand computation (arithmetic in the
 comments) on one constructed ``RewardInputs``, the scaling convention, signs and the clip."""
 
 import dataclasses
@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import rewards
-from mash import robots
+from mash.sim import rewards
+from mash.sim import robots
 
 # The T1's clearance target (a RewardParams default of None means the robot's; the env fills it).
 P = rewards.RewardParams(feet_height_target=robots.load("booster_t1").feet_height_target)

@@ -1,4 +1,4 @@
-"""Robots as data (mash.robots): the shipped robot files, their validation, roles, a user's own
+"""Robots as data (mash.sim.robots): the shipped robot files, their validation, roles, a user's own
 file, the numbers the env takes from a robot, and the G1 standing under MJX.
 
 Parametrized over every shipped robot (``robots.names()``); none of these compiles a trainer.
@@ -13,9 +13,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from mash import env as env_lib
-from mash import layout as layout_lib
-from mash import robots
+from mash.sim import env as env_lib
+from mash.sim import layout as layout_lib
+from mash.sim import robots
+from mash.sim import env_config
+from mash.sim import model as model_lib
 
 ROBOTS = robots.names()
 
@@ -34,7 +36,7 @@ def test_robot_file_builds_with_its_home_pose_on_the_floor(name):
   joints gone, the file's (or the model's) joint model written, and the home keyframe's lowest
   sole sphere within 2 mm of the floor (so home_height matches the kinematics)."""
   spec = robots.load(name)
-  model = robots.build_model(spec)
+  model = model_lib.build_model(spec)
   assert model.nu == len(spec.joints) and model.njnt == len(spec.joints) + 1
   assert [model.actuator(i).name for i in range(model.nu)] == list(spec.joints)
   for j in spec.locked_joints:
@@ -123,10 +125,10 @@ def test_a_bad_robot_file_is_one_spec_error_naming_the_field(path, value, messag
 
 def test_model_names_are_checked_against_the_mjcf():
   spec = robots.from_dict(_mutated("contact.capsules.Shank_Left.radius", 0.05))
-  assert robots.build_model(spec).nu == 20
+  assert model_lib.build_model(spec).nu == 20
   typo = robots.from_dict(_mutated("feet", ["left_foot_lnk", "right_foot_link"]))
   with pytest.raises(robots.SpecError, match="feet body 'left_foot_lnk' is not in the model"):
-    robots.build_model(typo)
+    model_lib.build_model(typo)
 
 
 def test_a_users_robot_file_by_path_needs_no_package_edit(tmp_path):
@@ -138,30 +140,30 @@ def test_a_users_robot_file_by_path_needs_no_package_edit(tmp_path):
   path.write_text(text.replace("fall_height = 0.4 ", "fall_height = 0.35 "))
   spec = robots.load(str(path))
   assert spec.name == "my_robot" and spec.fall_height == 0.35
-  env_lib.check_config(env_lib.EnvConfig(robot=str(path)))
-  lay = layout_lib.build(spec, env_lib.EnvConfig(robot=str(path)))
+  env_config.check_config(env_config.EnvConfig(robot=str(path)))
+  lay = layout_lib.build(spec, env_config.EnvConfig(robot=str(path)))
   assert lay.joints == robots.load("booster_t1").joints
   for bad in ("t2", str(tmp_path / "missing.toml")):
     with pytest.raises(ValueError, match=f"robot '{bad}' is unknown: expected one of "
                                          "booster_t1, unitree_g1 or the path of a robot file"):
-      env_lib.check_config(env_lib.EnvConfig(robot=bad))
+      env_config.check_config(env_config.EnvConfig(robot=bad))
   (tmp_path / "broken.toml").write_text("name = \n")
   with pytest.raises(ValueError, match="is not valid TOML"):
-    env_lib.check_config(env_lib.EnvConfig(robot=str(tmp_path / "broken.toml")))
+    env_config.check_config(env_config.EnvConfig(robot=str(tmp_path / "broken.toml")))
 
 
 def test_robot_numbers_fill_only_what_the_config_leaves_open():
   g1 = robots.load("unitree_g1")
-  filled = env_lib.with_robot_numbers(env_lib.EnvConfig(robot="unitree_g1"), g1)
+  filled = env_config.with_robot_numbers(env_config.EnvConfig(robot="unitree_g1"), g1)
   assert (filled.fall_height, filled.swing_amplitude, filled.arm_swing_amplitude) == (
       g1.fall_height, g1.swing_amplitude, g1.arm_swing_amplitude)
   assert filled.randomization.push_force == g1.push_force == (-21.0, 21.0)
   assert filled.randomization.push_torque == g1.push_torque
   assert filled.reward_params.feet_height_target == g1.feet_height_target
-  mine = dataclasses.replace(env_lib.EnvConfig(robot="unitree_g1"), fall_height=0.5)
-  assert env_lib.with_robot_numbers(mine, g1).fall_height == 0.5
+  mine = dataclasses.replace(env_config.EnvConfig(robot="unitree_g1"), fall_height=0.5)
+  assert env_config.with_robot_numbers(mine, g1).fall_height == 0.5
   t1 = robots.load("booster_t1")  # the T1's file holds the numbers the defaults used to be
-  t1_cfg = env_lib.with_robot_numbers(env_lib.EnvConfig(), t1)
+  t1_cfg = env_config.with_robot_numbers(env_config.EnvConfig(), t1)
   assert (t1_cfg.fall_height, t1_cfg.swing_amplitude, t1_cfg.arm_swing_amplitude,
           t1_cfg.randomization.push_force, t1_cfg.randomization.push_torque,
           t1_cfg.reward_params.feet_height_target) == (0.4, 0.25, 0.3, (-20.0, 20.0),
@@ -174,7 +176,7 @@ def test_g1_arm_swing_env_steps_under_mjx_with_its_file_alone():
   observation sizes, and 20 control steps of the nominal robot at zero action stay finite with the
   pelvis near its standing height. (It does not hold the pose for long at zero action: it tips
   over within about 2 s, see benchmarks/results/2026-12-02_g1_spec/.)"""
-  cfg = env_lib.EnvConfig(robot="unitree_g1", task="armswing")
+  cfg = env_config.EnvConfig(robot="unitree_g1", task="armswing")
   cfg = dataclasses.replace(cfg, randomization=dataclasses.replace(cfg.randomization,
                                                                    enabled=False))
   env = env_lib.MashEnv(cfg)
@@ -198,8 +200,8 @@ def test_g1_arm_swing_env_steps_under_mjx_with_its_file_alone():
 def test_robot_flag_stores_a_file_absolute_and_deployment_checks_the_name(tmp_path, monkeypatch):
   """``--robot my.toml`` (relative) is stored as an absolute path, so evaluate/export/sim2sim
   find it from anywhere; their ``--robot`` must be the robot the run was trained on."""
-  from experiments import common
-  from mash import policy
+  from mash import cli as common
+  from mash.deploy import policy
   (tmp_path / "my.toml").write_text(robots.robot_file("booster_t1").read_text())
   monkeypatch.chdir(tmp_path)
   assert common.robot_arg("my.toml") == str(tmp_path / "my.toml")

@@ -29,10 +29,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from mash import losses
-from mash import networks as nets
-from mash.config import TrainConfig
-from mash.toy_env import make_toy_env
+from mash.rl import losses
+from mash.rl import networks as nets
+from mash.rl.config import TrainConfig
+from toy_env import make_toy_env
 
 ROOT = Path(__file__).resolve().parents[1]
 M = 6  # samples in the minibatch
@@ -119,9 +119,11 @@ def test_return_k_trains_value_head_k(setup, k):
 TWO_DEVICE_GRADIENTS = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import PartitionSpec as P
-    from mash import losses, networks as nets, train
-    from mash.config import TrainConfig
-    from mash.toy_env import make_toy_env
+    from mash.rl import losses
+    from mash.rl import networks as nets
+    from mash.rl import mappo as train
+    from mash.rl.config import TrainConfig
+    from toy_env import make_toy_env
     assert jax.device_count() == 2, jax.devices()
     env = make_toy_env('legs_arms', 'mash')
     config = TrainConfig(actor_hidden=(16,), critic_hidden=(16,))  # advantages normalized
@@ -152,7 +154,8 @@ TWO_DEVICE_GRADIENTS = textwrap.dedent("""
 
 def test_two_devices_average_gradients_to_the_whole_minibatch():
   env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+             PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests"),
+                                        os.environ.get("PYTHONPATH", "")]),
              JAX_PLATFORMS="cpu")
   result = subprocess.run([sys.executable, "-c", TWO_DEVICE_GRADIENTS], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
@@ -168,7 +171,11 @@ def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_
   and (converged) solver settings, the MJX state copied in (warm start included), randomization
   off. The readings, the action the exported policy returns, the gait clock and the state after
   each control step must agree."""
-  from mash import env as env_lib, evaluation, export, policy as policy_lib, sim2sim
+  from mash.sim import env as env_lib
+  from mash.analysis import evaluation
+  from mash.deploy import export
+  from mash.deploy import policy as policy_lib
+  from mash.deploy import sim2sim
 
   policy = policy_lib.load(smoke_run)
   eval_cfg = evaluation.EvalConfig(randomization=False, episode_s=1.0, num_episodes=1)

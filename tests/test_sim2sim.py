@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mash import env as env_lib
-from mash import runs
-from mash import sim2sim
+from mash.runs import loop as runs
+from mash.deploy import sim2sim
+from mash.sim import geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +37,7 @@ def test_quat_to_euler_matches_env():
   for _ in range(20):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
-    np.testing.assert_allclose(sim2sim.quat_to_euler(q), np.asarray(env_lib.quat_to_euler(q)),
+    np.testing.assert_allclose(sim2sim.quat_to_euler(q), np.asarray(geometry.quat_to_euler(q)),
                                atol=1e-5)
 
 
@@ -117,6 +117,6 @@ def test_not_a_policy(tmp_path):
                             [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
                             [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
   onnx.save(helper.make_model(graph), str(tmp_path / "other.onnx"))
-  from mash import export
+  from mash.deploy import export
   with pytest.raises(export.ExportError, match="no metadata 'joint_order'"):
     sim2sim.Deployment.from_metadata(export.read_metadata(tmp_path / "other.onnx"))

@@ -1,4 +1,4 @@
-"""Tasks as data (mash.tasks): an entry names its acting limb groups, its references, its command
+"""Tasks as data (mash.sim.tasks): an entry names its acting limb groups, its references, its command
 ranges and reward-scale overrides, and the layout, the env's reference and the presets follow it
 with no other change."""
 
@@ -10,11 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash import env as env_lib
-from mash import experiment
-from mash import layout
-from mash import robots
-from mash import tasks
+from mash.sim import env as env_lib
+from mash.runs import experiment
+from mash.sim import layout
+from mash.sim import robots
+from mash.sim import tasks
+from mash.sim import env_config
 
 T1 = robots.load("booster_t1")
 
@@ -42,7 +43,7 @@ def test_a_new_task_is_one_entry(arms_free):
   cfg = experiment.make_config("arms_free", "mash", "smoke")
   assert cfg.env.commands.vx == (0.0, 0.5) and cfg.env.commands.vy == (-0.2, 0.2)
   assert cfg.env.reward_scales.feet_air_time == 2.0
-  assert cfg.env.reward_scales.joint_pos == env_lib.EnvConfig().reward_scales.joint_pos
+  assert cfg.env.reward_scales.joint_pos == env_config.EnvConfig().reward_scales.joint_pos
   lay = layout.build(T1, cfg.env)
   assert [g.name for g in lay.groups] == ["legs", "arms"] and lay.n_actions == 20
   # The reference: the legs swing, the arms (no swing reference in this task) hold still.

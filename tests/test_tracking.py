@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from mash import evaluation
+from mash.analysis import evaluation
 
 
 def _hand_trajectory():
@@ -85,7 +85,7 @@ def test_tracking_grid_covers_the_issue_commands():
 def test_evaluate_tracking_writes_the_grid(smoke_run):
   """``evaluate --tracking`` on the smoke run: one entry per grid command with the issue's keys,
   the plot, and trajectories from which the figures are recomputed."""
-  from experiments.evaluate import tracking_run
+  from mash.analysis.reports import tracking_run
   cfg = evaluation.EvalConfig(num_episodes=1, episode_s=0.2)
   result = tracking_run(str(smoke_run), cfg)
   out = smoke_run / "eval_tracking"

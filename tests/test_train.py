@@ -1,4 +1,4 @@
-"""End-to-end tests of mash.train and mash.checkpoint on the toy env (CPU, seconds)."""
+"""End-to-end tests of mash.rl.mappo and mash.runs.checkpoint on the toy env (CPU, seconds)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,18 @@ import subprocess
 import sys
 import textwrap
 
+import dataclasses
+
 import chex
 import jax
 import numpy as np
 import pytest
 
-from mash import checkpoint, train
-from mash.config import TrainConfig, derived
-from mash.toy_env import make_toy_env
+from mash.runs import checkpoint
+from mash.rl import mappo
+from mash.rl import trainer as trainer_lib
+from mash.rl.config import TrainConfig, derived
+from toy_env import make_toy_env
 
 
 def assert_trees_close(a, b, rtol=1e-5, atol=1e-6):
@@ -50,8 +54,9 @@ def test_mash_learns_on_toy_env(learning_run, toy_config):
 
 
 def test_vmapped_seeds_equal_single_seed_runs(mash_trainer, learning_run):
-  seeds = train.make_seed_trainer(mash_trainer)
-  state = seeds.init(train.seed_keys(0, 2))
+  seeds = trainer_lib.make_trainer(mash_trainer.config, mash_trainer.env, seeds=2,
+                                   compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
+  state = seeds.init()
   state, metrics = seeds.train_epoch(state)
   chex.assert_shape(metrics['episode_reward'], (2, mash_trainer.config.iterations_per_call))
   params = jax.device_get(state.params)
@@ -66,8 +71,9 @@ def test_vmapped_seeds_equal_single_seed_runs(mash_trainer, learning_run):
 def test_run_trainers_of_one_and_many_seeds_share_one_interface(mash_trainer):
   """The host loop's view of a trainer: the restore template matches a fresh state leaf for leaf,
   seed i of many is the one-seed run of seed + i, and a salt draws other keys."""
-  from mash import trainers
-  one, many = trainers.one_seed(mash_trainer, 3), trainers.many_seeds(mash_trainer, 3, 2)
+  config = dataclasses.replace(mash_trainer.config, seed=3)
+  one = trainer_lib.make_trainer(config, mash_trainer.env, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
+  many = trainer_lib.make_trainer(config, mash_trainer.env, seeds=2, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   assert (one.seeds, one.devices, many.seeds, many.devices) == (1, 1, 2, 1)
   for run_trainer in (one, many):
     state = run_trainer.init()
@@ -77,7 +83,7 @@ def test_run_trainers_of_one_and_many_seeds_share_one_interface(mash_trainer):
   direct = jax.device_get(mash_trainer.init(jax.random.PRNGKey(3)).params)
   assert_trees_close(jax.device_get(one.init().params), direct)
   assert_trees_close(jax.tree.map(lambda x: x[0], jax.device_get(many.init().params)), direct)
-  salted = jax.device_get(one.init(salt=4).env_state.obs)
+  salted = jax.device_get(one.init(trainer_lib.fold(one, 4)).env_state.obs)
   assert not np.allclose(jax.tree.leaves(salted)[0],
                          jax.tree.leaves(jax.device_get(one.init().env_state.obs))[0])
 
@@ -97,7 +103,7 @@ def test_checkpoint_round_trip_and_exact_resume(mash_trainer, toy_config, tmp_pa
   manager.close()
   expected = jax.device_get(b)
   del b
-  template = jax.eval_shape(mash_trainer.init, key)
+  template = mash_trainer.state_shapes()
   restored = checkpoint.restore_latest(tmp_path / 'ckpt', template)
   assert restored.step == 5 and restored.config == toy_config
   jax.tree.map(np.testing.assert_array_equal, jax.device_get(restored.state), expected)
@@ -132,7 +138,7 @@ def test_no_recompilation(mash_trainer, learning_run):
 
 def test_ppo_partition_runs_through_same_code(toy_config):
   env = make_toy_env('legs', 'ppo')
-  trainer = train.make_train(toy_config, env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  trainer = trainer_lib.make_trainer(toy_config, env, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   assert [g.name for g in trainer.networks.groups] == ['body']
   state, metrics = trainer.train_epoch(trainer.init(jax.random.PRNGKey(0)))
   chex.assert_tree_all_finite(metrics)
@@ -143,7 +149,7 @@ def test_ppo_partition_runs_through_same_code(toy_config):
 def test_adaptive_learning_rate_rule():
   """rsl_rl's rule against hand values: / 1.5 above 2 x desired, x 1.5 below desired / 2 (not at
   0), unchanged between; clipped to [1e-5, 1e-2]."""
-  rule = jax.jit(train.adapt_learning_rate, static_argnums=2)
+  rule = jax.jit(mappo.adapt_learning_rate, static_argnums=2)
   for lr, kl, expected in ((1e-3, 0.03, 1e-3 / 1.5), (1e-3, 0.004, 1.5e-3), (1e-3, 0.0, 1e-3),
                            (1e-3, 0.01, 1e-3), (1e-3, 0.02, 1e-3), (1.2e-5, 0.5, 1e-5),
                            (8e-3, 1e-4, 1e-2)):
@@ -154,22 +160,20 @@ def test_adaptive_learning_rate_trains_checkpoints_and_logs(toy_config, mash_env
                                                             tmp_path):
   """Under ``adaptive_kl`` the rate lives in the optimizer state: it moves, stays in bounds, is
   logged per iteration and survives a checkpoint round trip; ``fixed`` logs the config's rate."""
-  import dataclasses
   cfg = dataclasses.replace(toy_config, learning_rate_schedule='adaptive_kl')
-  trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  trainer = trainer_lib.make_trainer(cfg, mash_env, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   state = trainer.init(jax.random.PRNGKey(0))
-  assert float(train.injected_learning_rate(state.opt_state)) == pytest.approx(3e-3)
+  assert float(mappo.injected_learning_rate(state.opt_state)) == pytest.approx(3e-3)
   state, metrics = trainer.train_epoch(state)
-  lr = float(train.injected_learning_rate(state.opt_state))
+  lr = float(mappo.injected_learning_rate(state.opt_state))
   assert lr != pytest.approx(3e-3) and 1e-5 <= lr <= 1e-2
   chex.assert_shape(metrics['learning_rate'], (cfg.iterations_per_call,))
   assert np.all((metrics['learning_rate'] >= 1e-5) & (metrics['learning_rate'] <= 1e-2))
   manager = checkpoint.make_manager(tmp_path / 'ckpt', max_to_keep=1)
   checkpoint.save(manager, 1, state, cfg)
   manager.close()
-  restored = checkpoint.restore_latest(tmp_path / 'ckpt',
-                                       jax.eval_shape(trainer.init, jax.random.PRNGKey(0)))
-  assert float(train.injected_learning_rate(restored.state.opt_state)) == lr
+  restored = checkpoint.restore_latest(tmp_path / 'ckpt', trainer.state_shapes())
+  assert float(mappo.injected_learning_rate(restored.state.opt_state)) == lr
   np.testing.assert_allclose(learning_run['metrics']['learning_rate'], toy_config.learning_rate)
   with pytest.raises(ValueError, match="learning_rate_schedule 'cosine' is unknown"):
     derived(dataclasses.replace(cfg, learning_rate_schedule='cosine'))
@@ -179,25 +183,24 @@ def test_linear_learning_rate_decays_to_zero_at_the_last_iteration(toy_config, m
   """``linear``: iteration i's 16 minibatch steps (4 epochs x 4) use the rates
   3e-3 * (1 - step / 160) of its steps 16 i .. 16 i + 15 (10 iterations), logged as their mean;
   the rate is in the optimizer state, so a resume goes on from it; 0 after the last step."""
-  import dataclasses
   cfg = dataclasses.replace(toy_config, learning_rate_schedule='linear', num_iterations=10)
-  trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  trainer = trainer_lib.make_trainer(cfg, mash_env, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   state, first = trainer.train_epoch(trainer.init(jax.random.PRNGKey(0)))
   state, second = trainer.train_epoch(state)
   logged = np.concatenate([first['learning_rate'], second['learning_rate']])
   expected = [3e-3 * (1.0 - (16 * i + 7.5) / 160) for i in range(10)]
   np.testing.assert_allclose(logged, expected, rtol=1e-5)
-  assert float(train.injected_learning_rate(state.opt_state)) == pytest.approx(
+  assert float(mappo.injected_learning_rate(state.opt_state)) == pytest.approx(
       3e-3 / 160, rel=1e-4)  # the last step's
-  assert float(train.linear_learning_rate(cfg)(160)) == 0.0
+  assert float(mappo.linear_learning_rate(cfg)(160)) == 0.0
 
 
 def test_sharded_one_device_matches_unsharded(mash_trainer):
   mesh = jax.make_mesh((1,), ('devices',), axis_types=(jax.sharding.AxisType.Auto,))
-  sharded = train.make_sharded_train_epoch(mash_trainer, mesh)
+  sharded = trainer_lib.make_trainer(mash_trainer.config, mash_trainer.env, mesh=mesh,
+                                     compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   key = jax.random.PRNGKey(11)
-  state = train.shard_train_state(mash_trainer.init(key), mesh)
-  out, metrics = sharded(state)
+  out, metrics = sharded.train_epoch(sharded.init(key))
   ref, ref_metrics = mash_trainer.train_epoch(mash_trainer.init(key))
   assert_trees_close(out.params, ref.params, rtol=1e-4, atol=1e-5)
   np.testing.assert_allclose(metrics['episode_reward'], ref_metrics['episode_reward'], rtol=1e-4)
@@ -206,17 +209,16 @@ def test_sharded_one_device_matches_unsharded(mash_trainer):
 TWO_DEVICE_SCRIPT = textwrap.dedent("""
     import jax, numpy as np
     from jax.sharding import PartitionSpec as P
-    from mash import train
-    from mash.config import TrainConfig
-    from mash.toy_env import make_toy_env
+    from mash.rl import trainer as trainer_lib
+    from mash.rl.config import TrainConfig
+    from toy_env import make_toy_env
     assert jax.device_count() == 2, jax.devices()
     config = TrainConfig(num_envs=16, unroll_length=8, iterations_per_call=2, num_epochs=2,
                          num_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
-    trainer = train.make_train(config, make_toy_env('legs', 'mash'),
-                               compiler_options=train.FAST_COMPILE_OPTIONS)
     mesh = jax.make_mesh((2,), ('devices',), axis_types=(jax.sharding.AxisType.Auto,))
-    sharded = train.make_sharded_train_epoch(trainer, mesh)
-    state, metrics = sharded(train.shard_train_state(trainer.init(jax.random.PRNGKey(0)), mesh))
+    trainer = trainer_lib.make_trainer(config, make_toy_env('legs', 'mash'), mesh=mesh,
+                                       compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
+    state, metrics = trainer.train_epoch(trainer.init())
     assert state.env_state.reward.sharding.spec == P('devices')
     assert int(state.iteration) == 2
     # Replicated outputs hold each device's own result: they agree only if the update was
@@ -235,7 +237,8 @@ TWO_DEVICE_SCRIPT = textwrap.dedent("""
 def test_two_devices_sharded_training_in_subprocess():
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
   env = dict(os.environ, XLA_FLAGS='--xla_force_host_platform_device_count=2',
-             PYTHONPATH=os.pathsep.join([root, os.environ.get('PYTHONPATH', '')]),
+             PYTHONPATH=os.pathsep.join([root, os.path.join(root, 'tests'),
+                                        os.environ.get('PYTHONPATH', '')]),
              JAX_PLATFORMS='cpu')
   result = subprocess.run([sys.executable, '-c', TWO_DEVICE_SCRIPT], env=env, cwd=root,
                           capture_output=True, text=True, timeout=300)
@@ -256,9 +259,8 @@ def test_the_first_update_step_sees_the_rollout_policy(toy_config, mash_env):
   sees exactly the policy that acted (ratio 1: approx KL 0, nothing clipped), because the update
   normalizes observations with the statistics the rollout used, not the ones updated from it.
   (Normalizing with the updated statistics makes the KL ~3e-3 here.)"""
-  import dataclasses
   cfg = dataclasses.replace(toy_config, num_epochs=1, num_minibatches=1, iterations_per_call=2)
-  trainer = train.make_train(cfg, mash_env, compiler_options=train.FAST_COMPILE_OPTIONS)
+  trainer = trainer_lib.make_trainer(cfg, mash_env, compiler_options=trainer_lib.FAST_COMPILE_OPTIONS)
   _, metrics = trainer.train_epoch(trainer.init(jax.random.PRNGKey(0)))
   np.testing.assert_allclose(metrics['approx_kl'], 0.0, atol=1e-7)
   np.testing.assert_array_equal(metrics['clip_fraction'], 0.0)

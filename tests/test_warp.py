@@ -19,29 +19,29 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from mash import env as env_lib
-from mash import experiment
-from mash import randomize
-from mash import robots
+from mash.sim import env as env_lib
+from mash.runs import experiment
+from mash.sim import randomize
+from mash.sim import model as model_lib
 
 DR_OFF = randomize.DomainRandConfig(enabled=False)
 STEPS = 10  # control steps (0.2 s) of the agreement test
 
 
-def _physics(impl: str, **fields) -> robots.PhysicsConfig:
-  return robots.PhysicsConfig(impl=impl, warp_max_envs=4, **fields)
+def _physics(impl: str, **fields) -> model_lib.PhysicsConfig:
+  return model_lib.PhysicsConfig(impl=impl, warp_max_envs=4, **fields)
 
 
 # ------------------------------------------------------------------------------ without Warp
 def test_the_warp_probe_matches_the_installed_packages():
-  """``robots.warp_installed`` reads MJX's probe: true exactly where warp-lang can be imported."""
-  assert robots.warp_installed() == (importlib.util.find_spec("warp") is not None)
+  """``model_lib.warp_installed`` reads MJX's probe: true exactly where warp-lang can be imported."""
+  assert model_lib.warp_installed() == (importlib.util.find_spec("warp") is not None)
 
 
 def test_warp_without_warp_is_one_config_error_with_the_install_hint(monkeypatch):
   """``--set env.physics.impl=warp`` where Warp is missing: one ConfigError line naming the
   setting and the fix (Warp made missing here, so this runs where it is installed too)."""
-  monkeypatch.setattr(robots, "warp_installed", lambda: False)
+  monkeypatch.setattr(model_lib, "warp_installed", lambda: False)
   with pytest.raises(experiment.ConfigError) as e:
     experiment.make_config("bipedal", overrides=["env.physics.impl=warp"])
   assert str(e.value) == ("env.physics.impl 'warp' needs MuJoCo Warp, which is not installed "
@@ -60,7 +60,7 @@ def test_a_bad_implementation_setting_is_refused(override, words):
 
 def test_a_batch_larger_than_the_warp_contact_buffer_is_refused(monkeypatch):
   """Warp's contact buffer is sized for warp_max_envs: a bigger batch would drop contacts."""
-  monkeypatch.setattr(robots, "warp_installed", lambda: True)
+  monkeypatch.setattr(model_lib, "warp_installed", lambda: True)
   with pytest.raises(experiment.ConfigError, match=r"warp_max_envs=256 must be at least the envs "
                      r"stepped at once, train.num_envs x seeds = 512"):
     experiment.make_config("bipedal", preset="cpu", overrides=[
@@ -69,7 +69,7 @@ def test_a_batch_larger_than_the_warp_contact_buffer_is_refused(monkeypatch):
       "train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=512"])
 
 
-@pytest.mark.skipif(robots.warp_installed(), reason="Warp is installed here")
+@pytest.mark.skipif(model_lib.warp_installed(), reason="Warp is installed here")
 def test_the_cli_without_warp_prints_one_line_and_nothing_else():
   """No MJX probe lines ('Failed to import warp') on a default install: the command that asks for
   Warp prints exactly one line, the error, and exits 2."""

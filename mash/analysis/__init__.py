@@ -1,0 +1,1 @@
+"""Evaluation rollouts, the paper's metrics and the comparison's statistics."""

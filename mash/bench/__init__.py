@@ -1,0 +1,1 @@
+"""Benchmark helpers: throughput timing, Brax's PPO on our env, device scaling."""
