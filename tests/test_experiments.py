@@ -220,7 +220,7 @@ def test_evaluation_wiring_left_hip_first_and_alive_until_the_fall(smoke_config)
   step that fell (its state is the fall's) and drops everything after, also a second done."""
   from mash.analysis import evaluation
   env = env_lib.MashEnv(smoke_config.env)
-  left, right = (env.spec.joints[i] for i in evaluation.hip_pitch_index(env))
+  left, right = (env.spec.joints[i] for i in env.spec.role_indices("hip_pitch", "legs"))
   assert left == "Left_Hip_Pitch" and right == "Right_Hip_Pitch"
   shoulders = [env.spec.joints[i] for i in evaluation.shoulder_pitch_index(env)]
   assert shoulders == ["Left_Shoulder_Pitch", "Right_Shoulder_Pitch"]
@@ -501,7 +501,7 @@ def _stand_ins(monkeypatch, training, evaluation, kept=None):
   monkeypatch.setattr(reports, "evaluate_run", evaluation)
   monkeypatch.setattr(comparison, "keep_policy",
                       lambda run, seed_dir, seed=0: (kept if kept is not None else []).append(
-                          (run.name, seed_dir.name, seed)))
+                          (run.parent.name + "/" + run.name, seed_dir.name, seed)))
 
 
 def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, tmp_path,
@@ -544,7 +544,7 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1"]
   # Each run kept its policy and its record was compacted (the log gzipped, as committed).
-  assert sorted(kept) == sorted((d.split("/")[-1], d.split("/")[-1], 0) for d in runs_in_order)
+  assert set(kept) == {("/".join(d.split("/")[-2:]), d.split("/")[-1], 0) for d in runs_in_order}
   assert (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv.gz").is_file()
   assert not (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv").exists()
   events.clear()
@@ -623,7 +623,8 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
     assert len(metrics["per_seed"]) == 1 and (d / "eval" / "hip_trace.npz").is_file()
     assert set(metrics) == set(single) and metrics["std"]["fall_rate"] == 0.0
   assert [d.name for d in compare_lib.seed_dirs(mash)] == ["seed0", "seed1", "seed2"]
-  assert ("group_seeds1-2", "seed1", 0) in kept and ("group_seeds1-2", "seed2", 1) in kept
+  assert ("lr0.0003/group_seeds1-2", "seed1", 0) in kept
+  assert ("lr0.0003/group_seeds1-2", "seed2", 1) in kept
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
       "seed0", "seed1", "seed2"]
   assert " (group_seeds1-2) |" in (tmp_path / "cmp" / "report.md").read_text()

@@ -127,7 +127,7 @@ def local_processes_wanted(args: argparse.Namespace, preset: str, seeds: int) ->
   if value == "auto":
     if by_hand or seeds != 1 or preset == "smoke":
       return 1
-      return 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+    return 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
   try:
     n = int(value)
   except ValueError:
