@@ -2,14 +2,14 @@
 
   python benchmarks/scripts/2026-12-01_solver_iterations_probe.py ITERATIONS LS LO HI N
 
-rolls ``assets/policies/t1_bipedal_mash`` as it was shipped until 2026-12-05 (trained with 1
+rolls ``mash/assets/policies/t1_bipedal_mash`` as it was shipped until 2026-12-05 (trained with 1
 Newton iteration, 4 line-search iterations; run the script in a checkout of commit b46426c to get
 that policy: the folder holds the 2-iteration preset's seed 0 since) for N randomized 20 s
 episodes at vx 0.4 m/s on floors of friction U[LO, HI], with the env's solver set to
 ITERATIONS / LS, and prints one JSON line. The script now imports the current package layout
 (``mash.analysis``, ``mash.deploy``, ``mash.sim``), so run it in the current tree with only commit
-b46426c's ``assets/policies/t1_bipedal_mash/`` brought in (``git show
-b46426c:assets/policies/t1_bipedal_mash/<file> > assets/policies/t1_bipedal_mash/<file>`` for
+b46426c's ``mash/assets/policies/t1_bipedal_mash/`` brought in (``git show
+b46426c:mash/assets/policies/t1_bipedal_mash/<file> > mash/assets/policies/t1_bipedal_mash/<file>`` for
 ``card.md``, ``config.json``, ``policy.json``, ``policy.npz``, ``policy.onnx``).
 """
 
@@ -23,7 +23,7 @@ from mash.sim import env as env_lib
 
 iterations, ls_iterations, lo, hi, n = (int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]),
                                         float(sys.argv[4]), int(sys.argv[5]))
-policy = policy_lib.load("assets/policies/t1_bipedal_mash")
+policy = policy_lib.load("mash/assets/policies/t1_bipedal_mash")
 physics = dataclasses.replace(policy.config.env.physics, iterations=iterations,
                               ls_iterations=ls_iterations)
 eval_cfg = evaluation.EvalConfig(num_episodes=n, friction=(lo, hi))

@@ -27,11 +27,11 @@ from mash.deploy import sim2sim
 from mash.deploy import video as video_lib
 from mash.sim import robots
 
-SHIPPED = Path(__file__).resolve().parents[2] / "assets" / "policies"
+SHIPPED = Path(__file__).resolve().parents[1] / "assets" / "policies"
 
 
 def shipped_policies() -> list[str]:
-  """Names of the policies in assets/policies/ (folders holding a policy.onnx)."""
+  """Names of the policies in mash/assets/policies/ (folders holding a policy.onnx)."""
   return sorted(p.name for p in SHIPPED.glob("*") if (p / "policy.onnx").is_file())
 
 
@@ -220,7 +220,7 @@ def record(o: Options, onnx_path: Path, spec: robots.RobotSpec, meta: Mapping[st
   t0 = time.perf_counter()
   try:
     traj = sim2sim.run_episode(robot, controller, command, steps, o.phase,
-                               sim2sim.hip_pitch_index(dep, spec), writer,
+                               spec.role_indices("hip_pitch", "legs"), writer,
                                frame_every=max(1, int(round(1.0 / (dep.ctrl_dt * fps)))))
   finally:
     writer.close()

@@ -1,6 +1,6 @@
 """Robots as data: which MJCF to load, how its limbs split into agents, and its PD and pose numbers.
 
-A robot is a TOML file (``assets/robots/<name>.toml``, or any path a user gives): :func:`load`
+A robot is a TOML file (``mash/assets/robots/<name>.toml``, or any path a user gives): :func:`load`
 reads and validates it into a :class:`RobotSpec`, which names joints, bodies and geoms only and
 gives each joint a *role* (``hip_pitch``, ``knee_pitch``, ``shoulder_pitch``, ...): the code finds
 joints by role, never by their names. ``build_model`` turns a spec into an ``mujoco.MjModel``
@@ -22,7 +22,7 @@ from typing import Any, Mapping
 from mash.checks import check_number
 from mash.errors import InputError
 
-ROBOT_DIR = Path(__file__).resolve().parents[2] / "assets" / "robots"
+ROBOT_DIR = Path(__file__).resolve().parents[1] / "assets" / "robots"
 
 
 class SpecError(InputError):
@@ -149,6 +149,12 @@ class RobotSpec:
       raise SpecError(f"robot '{self.name}' has no limb group '{group}'")
     return tuple(l.joint(role) for l in limbs)
 
+  def role_indices(self, role: str, group: str) -> list[int]:
+    """Positions in :attr:`joints` of :meth:`role_joints` (left first), e.g. of the two hip
+    pitches for ``("hip_pitch", "legs")``; a list, so that ``x[..., idx]`` picks them from a
+    ``[..., J]`` NumPy or JAX array."""
+    return [self.joints.index(j) for j in self.role_joints(role, group)]
+
   def role_of(self, joint: str) -> str:
     """The role of ``joint`` (one of :attr:`joints`)."""
     for limb in self.limbs:
@@ -174,7 +180,7 @@ _TASK_RANGES = {"push_force": (-1e4, 1e4, "N"), "push_torque": (-1e3, 1e3, "N m"
 
 
 def names() -> tuple[str, ...]:
-  """The robots this package ships: the files of ``assets/robots/``, by name."""
+  """The robots this package ships: the files of ``mash/assets/robots/``, by name."""
   return tuple(sorted(p.stem for p in ROBOT_DIR.glob("*.toml")))
 
 
@@ -190,7 +196,7 @@ def robot_file(robot: str) -> Path:
   if path.suffix == ".toml" and path.is_file():
     return path
   raise SpecError(f"robot '{robot}' is unknown: expected one of {', '.join(names())} or the path "
-                  "of a robot file (.toml, see assets/robots/)")
+                  "of a robot file (.toml, see mash/assets/robots/)")
 
 
 _CACHE: dict[Path, tuple[float, RobotSpec]] = {}
@@ -266,7 +272,7 @@ def _strings(value: Any, where: str) -> tuple[str, ...]:
 
 
 def from_dict(d: Mapping[str, Any]) -> RobotSpec:
-  """A :class:`RobotSpec` from a robot file's table (its format: ``assets/robots/*.toml``).
+  """A :class:`RobotSpec` from a robot file's table (its format: ``mash/assets/robots/*.toml``).
 
   Checks every field without the model (:func:`build_model` checks the names against it): the
   kinds, the ranges of the numbers, each group's roles present in each of its limbs once, each
