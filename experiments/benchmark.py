@@ -18,7 +18,7 @@ from pathlib import Path
 from mash import cli
 from mash.bench import benchmark as bench
 from mash.bench import sweeps
-from mash.sim import env_config
+from mash.sim import env_config, robots
 from mash.sim import model as model_lib
 
 MAX_BATCH = 2**20  # envs; TrainConfig's own cap (mash.rl.config.SIZE_CAPS)
@@ -41,7 +41,7 @@ def _parser() -> cli.Parser:
                  help=f"comma-separated subset of {','.join(bench.STAGES)} (default: all)")
   p.add_argument("--dir", default="benchmarks", help="where --sweep writes its table and plot")
   p.add_argument("--robot", default="booster_t1", metavar="NAME|FILE.toml",
-                 help="a shipped robot (booster_t1, unitree_g1) or a robot file")
+                 help=f"a shipped robot ({', '.join(robots.names())}) or a robot file")
   p.add_argument("--impl", default="jax",
                  help="MJX implementation of the physics: jax (default) or warp (MuJoCo Warp)")
   return p

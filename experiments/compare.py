@@ -18,6 +18,7 @@ from mash import cli
 from mash.analysis import compare as compare_lib
 from mash.analysis import evaluation
 from mash.runs import comparison, experiment
+from mash.sim import robots
 
 
 def main(argv=None) -> None:
@@ -38,7 +39,7 @@ def main(argv=None) -> None:
                  help="the search both methods get: seed 0 at each rate, the same rule picks "
                       "each method's (default 1e-3,3e-4)")
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
-                 help="a shipped robot (booster_t1, unitree_g1) or a robot file (default: "
+                 help=f"a shipped robot ({', '.join(robots.names())}) or a robot file (default: "
                       "booster_t1; the same as --set env.robot=...)")
   p.add_argument("--seeds-at-once", type=int, default=1, metavar="K",
                  help="train up to K seeds of a method without a run yet in one vmapped call "

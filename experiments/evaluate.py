@@ -24,7 +24,7 @@ and ``tracking_trajectories.npz`` (``commands [E,4]``, ``velocity [E,T,3]``, ``a
 from __future__ import annotations
 
 from mash import cli
-from mash.analysis import evaluation, reports
+from mash.analysis import evaluation, reports, robustness
 
 
 def main(argv=None) -> None:
@@ -56,12 +56,20 @@ def main(argv=None) -> None:
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
                  help="the robot file to use instead of the run's env.robot (the same robot, "
                       "e.g. a user's file that has moved)")
+  p.add_argument("--robustness", action="store_true",
+                 help="the robustness battery instead: at vx 0.4, kicks of 0.25-1 m/s in 8 "
+                      "directions, friction bands, torso mass +-20 %%, weak motors, sensor noise, "
+                      "latency 0-40 ms, --episodes per condition (default 64), the rest as trained; "
+                      "writes DIR/eval_robustness/robustness.json, robustness.png")
   p.add_argument("--tracking", action="store_true",
                  help="command tracking instead: every command of the grid (standing; vx -0.3 to "
                       "0.8; vy +-0.2; yaw rate +-0.5), --episodes per command (default 64), "
                       "writes DIR/eval_tracking/tracking.json, tracking.png")
   args = p.parse_args(argv)
   with cli.user_errors():
+    if args.robustness:
+      _robustness(args)
+      return
     cfg = _eval_config(args)
     dr = reports.describe(cfg, args.seed is not None)
     which = "" if args.iteration is None else f" (checkpoint of iteration {args.iteration})"
@@ -79,6 +87,31 @@ def main(argv=None) -> None:
                                                robot=args.robot))
     out = f"{args.run}/{reports.eval_dir_name(cfg, args.iteration)}"
     print(f"wrote {out}/metrics.json, trajectories.npz, hip_pitch.png")
+
+
+def _robustness(args) -> None:
+  """``--robustness``: the battery in MJX (its own episodes, command and seed)."""
+  cli.check_path(args.run, "--run")
+  given = [f for f, v in (("--tracking", args.tracking), ("--no-dr", args.no_dr),
+                          ("--no-push", args.no_push), ("--friction", args.friction),
+                          ("--push-interval", args.push_interval),
+                          ("--command-vx", args.command_vx)) if v]
+  if given:
+    raise cli.UserError(f"--robustness runs its own conditions; drop {', '.join(given)}")
+  cfg = robustness.BatteryConfig(**{k: v for k, v in (
+      ("episodes", args.episodes), ("seed", args.seed)) if v is not None})
+  try:
+    robustness.check_config(cfg)
+  except ValueError as e:
+    raise cli.UserError(str(e).replace("episodes", "--episodes", 1)) from None
+  n = len(robustness.conditions(cfg))
+  print(f"robustness of {args.run}: {n} conditions x {cfg.episodes} episodes x "
+        f"{cfg.episode_s:g} s at vx {cfg.command_vx:g} m/s in MJX (one compiled rollout; "
+        "minutes on a CPU)", flush=True)
+  result = reports.robustness_run(args.run, cfg, iteration=args.iteration, robot=args.robot)
+  reports.print_robustness(result)
+  suffix = "" if args.iteration is None else f"_it{args.iteration}"
+  print(f"wrote {args.run}/eval_robustness{suffix}/robustness.json, robustness.png")
 
 
 def _eval_config(args) -> evaluation.EvalConfig:

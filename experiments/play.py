@@ -1,6 +1,6 @@
 """``python -m experiments.play --policy NAME``: a trained policy walking in native MuJoCo.
 
-NAME is a shipped policy (a folder of assets/policies/, e.g. t1_bipedal_mash), a policy folder
+NAME is a shipped policy (a folder of mash/assets/policies/, e.g. t1_bipedal_mash), a policy folder
 holding policy.onnx, an ONNX file, or a run directory (its policy.onnx, exported first when it is
 missing or older than the run's latest checkpoint). It plays the ONNX file in MuJoCo C through
 the controller a robot would run (mash.deploy.sim2sim), without the training code.

@@ -7,8 +7,15 @@ forward command, and writes ``DIR/sim2sim/report.json``, ``report.md`` (MuJoCo C
 evaluation: ``DIR/eval/metrics.json`` when it exists, else a short ``evaluate_run``) and
 ``trajectories.npz``. ``DIR`` may also be a policy folder (:mod:`mash.deploy.policy`).
 
+``--robustness`` runs the robustness battery (:mod:`mash.analysis.robustness`: kicks, floors,
+torso mass, weak motors, sensor noise, latency) in MuJoCo C instead, ``--episodes`` per condition
+(default 64) of ``--seconds`` (default 8) at vx 0.4 m/s, in ``--workers`` processes (default: one
+per CPU core), and writes ``DIR/sim2sim_robustness/robustness.json`` and ``robustness.png`` in the
+format of the MJX battery's (``python -m experiments.evaluate --robustness``).
+
 Examples:
   python -m experiments.sim2sim --run runs/bipedal_mash_cpu_X
+  python -m experiments.sim2sim --run DIR --robustness --episodes 8
   python -m experiments.sim2sim --run DIR --episodes 2 --seconds 10 --video walk.mp4
   python -m experiments.sim2sim --run DIR --viewer      # arrows: vx / yaw rate, space: stand
 """
@@ -27,9 +34,13 @@ def main(argv=None) -> None:
                     epilog="\n".join(__doc__.splitlines()[2:]))
   p.add_argument("--run", required=True,
                  help="run directory, or policy folder (mash.deploy.policy)")
-  p.add_argument("--episodes", type=int, default=4, help="MuJoCo C episodes")
-  p.add_argument("--seconds", type=float, default=20.0, help="episode duration (s)")
-  p.add_argument("--command-vx", type=float, default=0.4, help="forward command (m/s)")
+  p.add_argument("--episodes", type=int, default=None,
+                 help="MuJoCo C episodes (default 4), or per condition with --robustness "
+                      "(default 64, a multiple of 8)")
+  p.add_argument("--seconds", type=float, default=None,
+                 help="episode duration (s; default 20, or 8 with --robustness)")
+  p.add_argument("--command-vx", type=float, default=None, help="forward command (m/s, default "
+                 "0.4)")
   p.add_argument("--sim-dt", type=float, default=0.002, help="physics step (s): 0.001 or 0.002")
   p.add_argument("--iterations", type=int, default=10, help="Newton iterations (>= 10)")
   p.add_argument("--seed", type=int, default=0, help="which seed of a multi-seed run")
@@ -42,11 +53,20 @@ def main(argv=None) -> None:
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
                  help="the robot file to use instead of the run's env.robot (the same robot, "
                       "e.g. a user's file that has moved)")
-  p.add_argument("--mjx-episodes", type=int, default=4,
-                 help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing")
+  p.add_argument("--mjx-episodes", type=int, default=None,
+                 help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing "
+                      "(default 4)")
   p.add_argument("--mjx-dr", action="store_true",
                  help="that MJX evaluation with domain randomization (default: off, the nominal "
                       "robot, like the MuJoCo C side)")
+  p.add_argument("--robustness", action="store_true",
+                 help="the robustness battery in MuJoCo C instead (writes "
+                      "DIR/sim2sim_robustness/robustness.json, robustness.png)")
+  p.add_argument("--workers", type=int, default=None, metavar="N",
+                 help="--robustness: processes running episodes (default: one per CPU core)")
+  p.add_argument("--battery-seed", type=int, default=None, metavar="S",
+                 help="--robustness: the battery's seed (its floors, noise; default 2026, the "
+                      "MJX battery's); --seed still picks the seed of a multi-seed run")
   args = p.parse_args(argv)
   options = native_report.Options(**vars(args))
   try:

@@ -316,6 +316,83 @@ def test_critic_observation_layout(dr_env):
   np.testing.assert_array_equal(stance, [0.0, 1.0])
 
 
+KICKS = randomize.DomainRandConfig(kick_velocity=(0.5, 0.5), kick_interval_s=(0.1, 0.1),
+                                   kick_yaw_rate=(0.2, 0.2))
+
+
+def test_critic_sees_the_kick_and_the_actors_do_not(dr_env):
+  """With kicks on, the critic gains the last kick (3) after the push; the actors' observations
+  are those of the env without kicks."""
+  kicked = env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2,
+                            randomization=KICKS)
+  sensors, info, contact = _random_inputs(dr_env, seed=3, phase=0.3)
+  plain = _observe(dr_env, sensors, info, contact)
+  obs = _observe(kicked, sensors, dict(info, kick=np.array([0.3, -0.4, 0.2])), contact)
+  lay = kicked.layout.critic
+  assert lay.size == dr_env.layout.critic.size + 3 and lay.offset("kick") == lay.offset(
+      "push") + 5
+  np.testing.assert_allclose(obs["critic"][lay.slice("kick")], [0.3, -0.4, 0.2], rtol=1e-6)
+  no_kick = np.delete(obs["critic"], np.arange(lay.offset("kick"), lay.offset("kick") + 3))
+  np.testing.assert_allclose(no_kick, plain["critic"], rtol=1e-6)
+  for group in plain:
+    if group != "critic":
+      np.testing.assert_array_equal(obs[group], plain[group])
+
+
+def test_sample_kick_sizes_directions_and_yaw():
+  """4096 kicks of 0.2-1.0 m/s and 0.1-0.3 rad/s: every size in range, the direction uniform in
+  the plane (each quadrant about a quarter, mean direction about 0), the yaw sign both ways."""
+  cfg = randomize.DomainRandConfig(kick_velocity=(0.2, 1.0), kick_yaw_rate=(0.1, 0.3))
+  kicks = np.asarray(jax.jit(jax.vmap(lambda k: randomize.sample_kick(k, cfg)))(
+      jax.random.split(jax.random.key(0), 4096)))
+  assert kicks.shape == (4096, randomize.KICK_SIZE)
+  size = np.linalg.norm(kicks[:, :2], axis=1)
+  assert size.min() >= 0.2 - 1e-6 and size.max() <= 1.0 + 1e-6
+  assert abs(size.mean() - 0.6) < 0.02
+  quadrant = np.bincount((kicks[:, 0] > 0) * 2 + (kicks[:, 1] > 0), minlength=4) / 4096
+  np.testing.assert_allclose(quadrant, 0.25, atol=0.03)
+  np.testing.assert_allclose((kicks[:, :2] / size[:, None]).mean(0), 0.0, atol=0.05)
+  yaw = np.abs(kicks[:, 2])
+  assert yaw.min() >= 0.1 - 1e-6 and yaw.max() <= 0.3 + 1e-6
+  assert 0.45 < (kicks[:, 2] > 0).mean() < 0.55
+  assert not randomize.DomainRandConfig().kicks  # off unless a preset turns them on
+  assert not dataclasses.replace(cfg, enabled=False).kicks
+
+
+def test_kick_interval_steps_hand_values():
+  key = jax.random.key(0)
+  for interval, steps in (((1.0, 1.0), 50), ((0.001, 0.001), 1), ((0.05, 0.05), 2)):
+    cfg = randomize.DomainRandConfig(kick_interval_s=interval)
+    assert int(randomize.kick_interval_steps(key, cfg, 0.02)) == steps, interval
+  cfg = randomize.DomainRandConfig(kick_interval_s=(5.0, 10.0))
+  drawn = np.asarray(jax.vmap(lambda k: randomize.kick_interval_steps(k, cfg, 0.02))(
+      jax.random.split(key, 512)))
+  assert drawn.min() >= 250 and drawn.max() <= 500 and drawn.std() > 50
+
+
+def test_a_kick_changes_the_torso_velocity_when_its_timer_runs_out(random_rollout):
+  """The kick stage on a state: with its timer at 1 the torso's world vx, vy and its yaw rate
+  jump by the kick (0.5 m/s, 0.2 rad/s) and the timer restarts at 0.1 s / 20 ms = 5 steps;
+  with the timer above 1 nothing moves and the timer counts down. Other velocities never move."""
+  kicked = env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2,
+                            randomization=KICKS)
+  state = jax.tree.map(lambda x: jnp.asarray(x[0]), random_rollout[1])
+  qvel = np.asarray(state.pipeline_state.qvel)
+  for timer, kicks in ((1, True), (3, False)):
+    info = dict(state.info, kick=jnp.zeros(3), kick_timer=jnp.asarray(timer, jnp.int32))
+    after, kept = kicked._kick(state.replace(info=info), jax.random.key(timer))
+    dv = np.asarray(after.pipeline_state.qvel) - qvel
+    if kicks:
+      np.testing.assert_allclose(np.linalg.norm(dv[:2]), 0.5, rtol=1e-5)
+      np.testing.assert_allclose(abs(dv[5]), 0.2, rtol=1e-5)
+      np.testing.assert_allclose(dv[[0, 1, 5]], np.asarray(kept["kick"]), rtol=1e-5)
+      assert int(kept["kick_timer"]) == 5
+    else:
+      np.testing.assert_array_equal(dv, 0.0)
+      assert int(kept["kick_timer"]) == 2 and np.all(np.asarray(kept["kick"]) == 0)
+    np.testing.assert_array_equal(np.delete(dv, [0, 1, 5]), 0.0)
+
+
 @pytest.mark.parametrize("standing", [0.0, 1.0])
 def test_left_right_mirror_symmetry(armswing_env, standing):
   """Left agent's obs of the mirrored state == right agent's obs of the state, mirror signs
@@ -416,7 +493,8 @@ def test_randomize_sample_in_ranges_and_varies():
   n, nbody, nj = 256, 25, 20
   params = jax.jit(jax.vmap(lambda k: randomize.sample(k, cfg, nbody, nj)))(
       jax.random.split(jax.random.key(0), n))
-  assert set(RANGES) == {f for f in params.__dataclass_fields__}
+  assert set(RANGES) | {"motor_strength"} == {f for f in params.__dataclass_fields__}
+  np.testing.assert_array_equal(params.motor_strength, 1.0)  # weak motors: the battery's only
   for field, cfg_field in RANGES.items():
     lo, hi = getattr(cfg, cfg_field)
     v = np.asarray(getattr(params, field))
@@ -512,7 +590,7 @@ def test_randomize_apply_writes_fields(dr_env):
                              rtol=1e-6)
   np.testing.assert_allclose(model.opt.gravity, [0.0, 0.0, -float(params.gravity)], rtol=1e-6)
   soles = np.array([m.pair(f"{s}_sole_{k}_floor").id for s in ("left", "right")
-                    for k in range(len(T1.sole_points))])
+                    for k in range(len(T1.sole_points[0]))])
   others = np.array([i for i in range(m.npair) if i not in soles])
   np.testing.assert_allclose(model.pair_friction[soles, :2], float(params.friction), rtol=1e-6)
   np.testing.assert_allclose(model.pair_friction[soles, 2:], base.pair_friction[soles, 2:])

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from mash.sim import env as env_lib
 from mash.sim import layout
+from mash.sim import randomize
 from mash.sim import robots
 from mash.sim import tasks
 from mash.sim import env_config
@@ -170,9 +171,11 @@ def test_joint_tables_groups_and_phase_offsets():
 
 
 def test_layout_needs_only_the_spec_and_the_config_fields():
-  """No MjModel: any object with the six fields will do; bad choices are one-line errors."""
+  """No MjModel: any object with the seven fields will do (the randomization says whether the
+  critic sees kicks); bad choices are one-line errors."""
   cfg = types.SimpleNamespace(task="bipedal", partition="mash", agent_id=False,
-                              temporal_director=True, actor_history=2, critic="global")
+                              temporal_director=True, actor_history=2, critic="global",
+                              randomization=randomize.DomainRandConfig())
   assert layout.build(T1, cfg).observation_size == {"legs": (2, 60), "critic": (106,)}
   with pytest.raises(ValueError, match="partition 'pairs' is unknown"):
     layout.build(T1, types.SimpleNamespace(**{**vars(cfg), "partition": "pairs"}))
@@ -184,7 +187,8 @@ def test_layout_needs_only_the_spec_and_the_config_fields():
 PHASE_OFFSET = {"left_leg": 0.0, "right_leg": 0.5, "left_arm": 0.5, "right_arm": 0.0}
 
 
-@pytest.fixture(scope="module", params=list(itertools.product(tasks.names(), robots.names())),
+@pytest.fixture(scope="module", params=[(t, r) for t, r in itertools.product(
+    tasks.names(), robots.names()) if all(robots.load(r).limbs_of(g) for g in tasks.get(t).acting)],
                 ids="-".join)
 def reset_env(request):
   """One env per task and robot and its reset state (jitted reset)."""

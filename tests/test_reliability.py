@@ -158,20 +158,21 @@ def test_mjx_trainer_survives_nan_and_inf_states(smoke_trainer):
 
 # ------------------------------------------------------------------------------- 2. bad input
 def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
-  """model_lib.build_model names the joint; the CLI wrapper prints it as one line, exit 2."""
+  """model_lib.build_model names the limb, the role and the joint (a spec built in code; a file's
+  names are checked when it is read); the CLI wrapper prints it as one line, exit 2."""
   from mash import cli as common
   t1 = robots.load("booster_t1")
   leg = t1.limbs[0]
   typo = dataclasses.replace(leg, joints=(leg.joints[0] + "_typo",) + leg.joints[1:])
   bad = dataclasses.replace(t1, limbs=(typo,) + t1.limbs[1:])
-  with pytest.raises(robots.SpecError, match=rf"joint '{leg.joints[0]}_typo' \(limb 'left_leg', "
-                     r"role 'hip_pitch'\) is not in the model"):
+  with pytest.raises(robots.SpecError, match=rf"limb 'left_leg' joints.hip_pitch: joint "
+                     rf"'{leg.joints[0]}_typo' is not in the model"):
     model_lib.build_model(bad)
   with pytest.raises(SystemExit) as e, common.user_errors():
     model_lib.build_model(bad)
   assert e.value.code == 2
   lines = _stderr_lines(capsys.readouterr().err)
-  assert len(lines) == 1 and lines[0].startswith("error: robot 'booster_t1': joint"), lines
+  assert len(lines) == 1 and lines[0].startswith("error: robot 'booster_t1': limb"), lines
 
 
 def _main_error(capsys, module: str, argv: list[str]) -> str:

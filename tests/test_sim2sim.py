@@ -1,8 +1,10 @@
-"""Sim-to-sim in MuJoCo C: the CLI on the smoke run (report, comparison table, video) and helpers.
+"""Sim-to-sim in MuJoCo C: the CLI on the smoke run (report, comparison table, video), the
+robustness battery in MuJoCo C on a shipped policy, and helpers.
 
 Kept short: one 2 s episode in process, the video from a subprocess (``MUJOCO_GL`` must be chosen
 before mujoco is imported, and this test process imported it long ago), no MJX evaluation (a
-stand-in ``eval/metrics.json`` exercises the comparison table).
+stand-in ``eval/metrics.json`` exercises the comparison table), a battery of 9 conditions x 2
+episodes x 1.5 s.
 """
 
 from __future__ import annotations
@@ -14,12 +16,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mash.analysis import robustness
 from mash.runs import loop as runs
+from mash.deploy import native_battery
 from mash.deploy import sim2sim
 from mash.sim import geometry
+from mash.sim import robots
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,13 +39,62 @@ def run_copy(smoke_run, tmp_path_factory):
   return out
 
 
-def test_quat_to_euler_matches_env():
+def test_quat_to_euler_numpy_matches_jax():
+  """One function for the env (JAX in, JAX out) and native MuJoCo (NumPy in, NumPy out)."""
   rng = np.random.default_rng(0)
   for _ in range(20):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
-    np.testing.assert_allclose(sim2sim.quat_to_euler(q), np.asarray(geometry.quat_to_euler(q)),
-                               atol=1e-5)
+    euler = geometry.quat_to_euler(q)
+    assert isinstance(euler, np.ndarray) and euler.dtype == np.float64 and euler.shape == (3,)
+    from_jax = geometry.quat_to_euler(jnp.asarray(q, jnp.float32))
+    assert isinstance(from_jax, jax.Array)
+    np.testing.assert_allclose(euler, np.asarray(from_jax), atol=1e-5)
+
+
+def test_native_battery_on_a_shipped_policy(tmp_path):
+  """The battery in MuJoCo C: the MJX battery's conditions and row format, the same rows whatever
+  the worker count (each episode fixed by its index); a 10 m/s kick fells the robot, none does
+  not. Tiny: every group once or twice, 2 episodes (2 kick directions) x 1.5 s, kick at 0.5 s."""
+  cfg = robustness.BatteryConfig(episode_s=1.5, episodes=2, kick_at_s=0.5,
+                                 kick_sizes=(0.0, 10.0), kick_directions=2,
+                                 friction_bands=((0.2, 0.3),), torso_mass=(0.2,),
+                                 latency_ms=(20.0,))
+  onnx = robots.ROBOT_DIR.parent / "policies" / "t1_bipedal_mash" / "policy.onnx"
+  spec = robots.load("booster_t1")
+  rows = native_battery.run(onnx, spec, cfg, workers=1, progress=None)
+  assert [r["name"] for r in rows] == [c.name for c in robustness.conditions(cfg)]
+  assert all(0.0 <= r["survival"] <= 1.0 and r["episodes"] == 2 for r in rows)
+  by_name = {r["name"]: r for r in rows}
+  assert by_name["kick 0 m/s"]["survival"] == 1.0 and "survival_by_direction" not in by_name[
+      "kick 0 m/s"]
+  assert by_name["kick 10 m/s"]["survival"] == 0.0
+  assert by_name["kick 10 m/s"]["survival_by_direction"] == [0.0, 0.0]
+  assert native_battery.run(onnx, spec, cfg, workers=2, progress=None) == rows
+
+  physics = sim2sim.Sim2SimConfig()
+  out = native_battery.write(tmp_path, native_battery.result(onnx, physics, 0.02, cfg, rows),
+                             "test")
+  saved = json.loads((out / "robustness.json").read_text())
+  assert saved["engine"] == "mujoco" and saved["conditions"] == rows
+  assert saved["battery"]["episodes"] == 2 and saved["physics"]["iterations"] == 10
+  assert (out / "robustness.png").stat().st_size > 0
+
+
+def test_robustness_flags(tmp_path, capsys):
+  """--robustness runs its own conditions in MuJoCo C: a flag it has no use for is one error
+  line, and so are --workers without it and a bad --episodes."""
+  from experiments import sim2sim as cli
+  for argv, expected in (
+      (["--robustness", "--video", "x.mp4", "--no-mjx"], "drop --video, --no-mjx"),
+      (["--robustness", "--command-vx", "0"], "drop --command-vx"),
+      (["--robustness", "--episodes", "6"], "--episodes 6 must be a multiple of kick_directions"),
+      (["--workers", "2"], "--workers and --battery-seed go with --robustness")):
+    with pytest.raises(SystemExit) as e:
+      cli.main(["--run", str(tmp_path), *argv])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert expected in err and "\n" not in err, err
 
 
 def test_sim2sim_report(run_copy, capsys):

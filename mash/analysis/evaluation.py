@@ -100,12 +100,6 @@ def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_confi
                              episode_length=steps + 1, auto_reset=False)
 
 
-def hip_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
-  """[2] positions of the left and right hip-pitch joints (role ``hip_pitch``) in
-  ``env.spec.joints``."""
-  return np.array([env.spec.joints.index(n) for n in env.spec.role_joints("hip_pitch", "legs")])
-
-
 def shoulder_pitch_index(env: env_lib.MashEnv) -> np.ndarray:
   """[2] positions of the left and right arm-swing joints (role ``spec.arm_swing_role``, the
   shoulder pitch) in ``env.spec.joints``."""
@@ -141,7 +135,7 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     in force), ``alive [E,T]`` (1 until the fall), ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
   """
   steps = int(round(cfg.episode_s / env.dt))
-  hips = hip_pitch_index(env)
+  hips = env.spec.role_indices("hip_pitch", "legs")
   shoulders = shoulder_pitch_index(env)
   q_default = jnp.asarray(env.layout.default_pose, jnp.float32)
 

@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 
 from mash.analysis import evaluation
 from mash.analysis import metrics as metrics_lib
+from mash.analysis import robustness
 from mash.deploy import policy as policy_lib
 from mash.sim import env as env_lib
 from mash.sim import tasks
@@ -283,3 +284,61 @@ def describe(cfg: evaluation.EvalConfig, seed_given: bool) -> str:
   if seed_given:
     dr += f", rollout seed {cfg.seed}"
   return dr
+
+
+def robustness_run(run_dir: str, cfg: robustness.BatteryConfig = robustness.BatteryConfig(),
+                   iteration: int | None = None, robot: str | None = None,
+                   write: bool = True) -> dict:
+  """The robustness battery (:mod:`mash.analysis.robustness`) for every seed of a run's policy
+  (or a policy folder's one) in MJX; returns (and writes) ``eval_robustness/robustness.json``
+  (per condition the survival and speed, the mean over seeds, and ``per_seed``) and
+  ``robustness.png``."""
+  policies = policy_lib.load_all(run_dir, iteration, robot)
+  env = env_lib.MashEnv(robustness.battery_env_config(policies[0].config.env, cfg))
+  per_seed = [robustness.run(env, policy_lib.make_inference_fn(p, env), cfg) for p in policies]
+  rows = [{**row, "survival": float(np.mean([s[i]["survival"] for s in per_seed])),
+           "forward_speed": float(np.mean([s[i]["forward_speed"] for s in per_seed]))}
+          for i, row in enumerate(per_seed[0])]
+  for row in rows:
+    row.pop("survival_by_direction", None)
+  result = {"engine": "mjx", "iteration": policies[0].iteration, "seeds": len(policies),
+            "battery": dataclasses.asdict(cfg), "conditions": rows, "per_seed": per_seed}
+  if write:
+    out = Path(run_dir) / ("eval_robustness" + ("" if iteration is None else f"_it{iteration}"))
+    out.mkdir(exist_ok=True)
+    (out / "robustness.json").write_text(json.dumps(result, indent=2))
+    plot_robustness(rows, out / "robustness.png",
+                    f"{policies[0].config.task} {policies[0].config.algo}, MJX, iteration "
+                    f"{policies[0].iteration}, {cfg.episodes} episodes a condition")
+  return result
+
+
+def plot_robustness(rows: list[dict], path: Path, title: str) -> None:
+  """One panel per group of conditions: the share of episodes that survived (bars) and the mean
+  forward speed over the steps alive (numbers on the bars)."""
+  groups = [g for g in robustness.GROUPS if any(r["group"] == g for r in rows)]
+  fig = Figure(figsize=(3.0 * len(groups), 3.6))
+  axes = np.atleast_1d(fig.subplots(1, len(groups), sharey=True))
+  for ax, group in zip(axes, groups):
+    mine = [r for r in rows if r["group"] == group]
+    x = np.arange(len(mine))
+    ax.bar(x, [100 * r["survival"] for r in mine], color="tab:blue")
+    for xi, r in zip(x, mine):
+      ax.annotate(f"{r['forward_speed']:.2f} m/s", (xi, 100 * r["survival"]), ha="center",
+                  xytext=(0, 3), textcoords="offset points", fontsize=7)
+    ax.set_xticks(x, [r["name"].removeprefix(group).strip() or r["name"] for r in mine],
+                  rotation=30, ha="right", fontsize=8)
+    ax.set_title(group, fontsize=9)
+    ax.set_ylim(0, 110)
+    ax.grid(alpha=0.3, axis="y")
+  axes[0].set_ylabel("episodes survived (%)")
+  fig.suptitle(title, fontsize=9)
+  fig.tight_layout()
+  fig.savefig(path, dpi=120)
+
+
+def print_robustness(result: dict) -> None:
+  """The battery's result as the command prints it: one line per condition."""
+  for r in result["conditions"]:
+    print(f"  {r['name']:<32} survival {100 * r['survival']:5.1f} %, forward speed "
+          f"{r['forward_speed']:.3f} m/s ({r['episodes']} episodes)")

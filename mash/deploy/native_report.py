@@ -7,7 +7,9 @@ or exports the ONNX file (:func:`mash.deploy.sim2sim.resolve_onnx`), simulates i
 the paper's metrics of the MuJoCo C episodes (:func:`summarize`) beside those of the MJX
 evaluation (:func:`mjx_metrics`: ``DIR/eval/metrics.json``, or a short
 :func:`mash.analysis.reports.evaluate_run`), and writes ``DIR/sim2sim/report.json``,
-``report.md`` (:func:`markdown`) and ``trajectories.npz`` (:func:`write_report`).
+``report.md`` (:func:`markdown`) and ``trajectories.npz`` (:func:`write_report`). With
+``--robustness``, :func:`robustness` runs the robustness battery in MuJoCo C instead
+(:mod:`mash.deploy.native_battery`) into ``DIR/sim2sim_robustness/``.
 """
 
 from __future__ import annotations
@@ -21,17 +23,19 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import jax
-import mujoco
 import numpy as np
 
 from mash import cli
 from mash.analysis import evaluation
 from mash.analysis import reports
+from mash.analysis import robustness as battery
 from mash.deploy import export
+from mash.deploy import native_battery
 from mash.deploy import policy as policy_lib
 from mash.deploy import sim2sim
 from mash.deploy import video as video_lib
 from mash.sim import env as env_lib
+from mash.sim import robots
 
 REPORT_KEYS = ("S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed",
                "command_vx")
@@ -50,6 +54,13 @@ TABLE_ROWS = (  # (key, label, unit)
 SIM2SIM_FLAGS = {"command_vx": "--command-vx", "num_episodes": "--episodes",
                  "episode_s": "--seconds", "sim_dt": "--sim-dt", "iterations": "--iterations",
                  "seed": "--seed"}
+# The flag that sets each BatteryConfig field (--robustness), to name it in an error.
+BATTERY_FLAGS = {"episodes": "--episodes", "episode_s": "--seconds", "seed": "--battery-seed"}
+# Flags the battery has no use for: its command, conditions and engine are its own.
+NOT_WITH_ROBUSTNESS = {"video": "--video", "video_seconds": "--video-seconds",
+                       "viewer": "--viewer", "no_mjx": "--no-mjx", "command_vx": "--command-vx",
+                       "mjx_episodes": "--mjx-episodes", "mjx_dr": "--mjx-dr"}
+MJX_EPISODES = 4  # --mjx-episodes' default
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,8 +69,9 @@ class Options:
 
   Attributes:
     run: run directory, or policy folder.
-    episodes: MuJoCo C episodes. seconds: episode duration (s).
-    command_vx: forward command (m/s).
+    episodes: MuJoCo C episodes, or per condition with ``robustness`` (None: 4, or the
+      battery's 64). seconds: episode duration (s; None: 20, or the battery's 8).
+    command_vx: forward command (m/s; None: 0.4).
     sim_dt: physics step (s). iterations: Newton iterations.
     seed: which seed of a multi-seed run.
     onnx: the ONNX file to run instead of ``DIR/policy.onnx``, or None.
@@ -67,14 +79,18 @@ class Options:
     viewer: the interactive viewer instead of the episodes (needs a display).
     no_mjx: skip the MJX side of the comparison.
     robot: the robot file to use instead of the run's ``env.robot``, or None.
-    mjx_episodes: episodes of the MJX evaluation when ``DIR/eval/metrics.json`` is missing.
+    mjx_episodes: episodes of the MJX evaluation when ``DIR/eval/metrics.json`` is missing
+      (None: 4).
     mjx_dr: that evaluation with domain randomization.
+    robustness: the robustness battery instead (:func:`robustness`).
+    workers: its processes (None: one per CPU core).
+    battery_seed: its seed (None: the battery's default, the MJX battery's).
   """
 
   run: str
-  episodes: int = 4
-  seconds: float = 20.0
-  command_vx: float = 0.4
+  episodes: int | None = None
+  seconds: float | None = None
+  command_vx: float | None = None
   sim_dt: float = 0.002
   iterations: int = 10
   seed: int = 0
@@ -84,13 +100,16 @@ class Options:
   viewer: bool = False
   no_mjx: bool = False
   robot: str | None = None
-  mjx_episodes: int = 4
+  mjx_episodes: int | None = None
   mjx_dr: bool = False
+  robustness: bool = False
+  workers: int | None = None
+  battery_seed: int | None = None
 
 
 def check_options(o: Options) -> None:
   """The checks that need nothing loaded: paths, counts, the display for ``--viewer``, the
-  video's file name.
+  video's file name, the flags ``--robustness`` goes with and its battery.
 
   Raises:
     cli.UserError: one line naming the flag.
@@ -99,7 +118,19 @@ def check_options(o: Options) -> None:
   if o.video_seconds is not None and not 0 < o.video_seconds < math.inf:
     raise cli.UserError("--video-seconds must be a finite number of seconds > 0, got "
                         f"{o.video_seconds}")
-  if o.episodes < 1 or o.seconds <= 0 or o.mjx_episodes < 1:
+  if o.robustness:
+    given = [flag for field, flag in NOT_WITH_ROBUSTNESS.items()
+             if getattr(o, field) is not None and getattr(o, field) is not False]
+    if given:
+      raise cli.UserError(f"--robustness runs the battery's own command and conditions in MuJoCo "
+                          f"C alone; drop {', '.join(given)}")
+    battery_config(o)
+  elif o.workers is not None or o.battery_seed is not None:
+    raise cli.UserError("--workers and --battery-seed go with --robustness")
+  if o.workers is not None and o.workers < 1:
+    raise cli.UserError(f"--workers must be >= 1, got {o.workers}")
+  if ((o.episodes is not None and o.episodes < 1) or (o.seconds is not None and o.seconds <= 0)
+      or (o.mjx_episodes is not None and o.mjx_episodes < 1)):
     raise cli.UserError("--episodes and --mjx-episodes must be >= 1 and --seconds > 0")
   if o.iterations < 1:
     raise cli.UserError(f"--iterations must be >= 1, got {o.iterations}")
@@ -117,15 +148,37 @@ def sim2sim_config(o: Options) -> sim2sim.Sim2SimConfig:
   Raises:
     cli.UserError: one line naming the flag, its value and what was expected.
   """
-  cfg = sim2sim.Sim2SimConfig(command_vx=o.command_vx, num_episodes=o.episodes,
-                              episode_s=o.seconds, sim_dt=o.sim_dt, iterations=o.iterations,
-                              seed=o.seed)
+  given = {"command_vx": o.command_vx, "num_episodes": o.episodes, "episode_s": o.seconds}
+  cfg = sim2sim.Sim2SimConfig(**{k: v for k, v in given.items() if v is not None},
+                              sim_dt=o.sim_dt, iterations=o.iterations, seed=o.seed)
   try:
     sim2sim.check_config(cfg, SIM2SIM_FLAGS)
-    evaluation.check_config(evaluation.EvalConfig(num_episodes=o.mjx_episodes),
+    evaluation.check_config(evaluation.EvalConfig(num_episodes=mjx_episodes(o)),
                             {"num_episodes": "--mjx-episodes"})
   except ValueError as e:
     raise cli.UserError(str(e)) from None
+  return cfg
+
+
+def mjx_episodes(o: Options) -> int:
+  """The episodes of the MJX evaluation the options ask for."""
+  return MJX_EPISODES if o.mjx_episodes is None else o.mjx_episodes
+
+
+def battery_config(o: Options) -> battery.BatteryConfig:
+  """The robustness battery of the options (``--episodes``, ``--seconds``, ``--battery-seed``;
+  the rest the battery's defaults), checked.
+
+  Raises:
+    cli.UserError: one line naming the flag, its value and what was expected.
+  """
+  given = {"episodes": o.episodes, "episode_s": o.seconds, "seed": o.battery_seed}
+  cfg = battery.BatteryConfig(**{k: v for k, v in given.items() if v is not None})
+  try:
+    battery.check_config(cfg)
+  except ValueError as e:
+    field, rest = str(e).split(" ", 1)
+    raise cli.UserError(f"{BATTERY_FLAGS.get(field, field)} {rest}") from None
   return cfg
 
 
@@ -138,7 +191,7 @@ def hip_reference(env: env_lib.MashEnv,
     ``(phase [T], standing [T]) -> [T, 2]``: the left and right hip-pitch references (absolute,
     rad: the default pose plus the gait's offset).
   """
-  hips = evaluation.hip_pitch_index(env)
+  hips = env.spec.role_indices("hip_pitch", "legs")
   gait = jax.jit(jax.vmap(env.gait))
   q_default = np.asarray(env.layout.default_pose, np.float32)
 
@@ -218,10 +271,7 @@ def build_report(o: Options, onnx_path: Path, cfg: sim2sim.Sim2SimConfig,
       "run": str(Path(o.run)), "onnx": str(onnx_path),
       "checkpoint_iteration": meta.get("checkpoint_iteration"), "seed": o.seed,
       "command_vx": cfg.command_vx, "episodes": cfg.num_episodes, "episode_s": cfg.episode_s,
-      "physics": {"engine": "mujoco C " + mujoco.__version__, "sim_dt": cfg.sim_dt,
-                  "iterations": cfg.iterations, "ls_iterations": cfg.ls_iterations,
-                  "integrator": cfg.integrator, "full_collision": cfg.full_collision,
-                  "ctrl_dt": float(traj["dt"]), "domain_randomization": False},
+      "physics": sim2sim.physics_record(cfg, float(traj["dt"])),
       "mujoco": mujoco_row,
       "mjx": mjx[0], "mjx_source": mjx[1],
       "per_episode": [{"survival_s": float(a.sum() * traj["dt"]), "fell": bool(a.min() == 0),
@@ -291,6 +341,8 @@ def run(o: Options, say: Callable[[str], None] = print) -> Path | None:
   Raises:
     mash.errors.InputError: a run, robot, setting or ONNX file that cannot be used (one line).
   """
+  if o.robustness:
+    return robustness(o, say)
   video, video_backend, video_skipped = o.video, None, None
   if video is not None and not o.viewer:
     # MuJoCo was imported with mash, before the arguments were read: the backend found here goes
@@ -324,10 +376,50 @@ def run(o: Options, say: Callable[[str], None] = print) -> Path | None:
   wall = time.perf_counter() - t0
   mujoco_row = summarize(result.traj, cfg.command_vx)
   mjx = (None, "skipped (--no-mjx)") if o.no_mjx else mjx_metrics(
-      run_dir, o.mjx_episodes, o.seconds, o.command_vx, o.mjx_dr, say, o.robot)
+      run_dir, mjx_episodes(o), cfg.episode_s, cfg.command_vx, o.mjx_dr, say, o.robot)
   report = build_report(o, onnx_path, cfg, result, wall, mujoco_row, mjx, video, video_skipped)
   out = write_report(run_dir / "sim2sim", report, result.traj)
   say(markdown(report))
   say(f"wrote {out}/report.json, report.md, trajectories.npz"
       + (f"; video {video}" if video else ""))
+  return out
+
+
+def robustness(o: Options, say: Callable[[str], None] = print) -> Path:
+  """``--robustness``: the battery in MuJoCo C (:func:`mash.deploy.native_battery.run`), printed
+  and written to ``DIR/sim2sim_robustness/`` (``robustness.json``, ``robustness.png``).
+
+  Raises:
+    mash.errors.InputError: a run, robot, setting or ONNX file that cannot be used (one line).
+  """
+  run_dir = Path(o.run)
+  config = policy_lib.load_config(run_dir, o.robot)
+  out = run_dir / "sim2sim_robustness"
+  cli.check_writable_dir(out, "the run directory")
+  cfg = battery_config(o)
+  physics = sim2sim.Sim2SimConfig(sim_dt=o.sim_dt, iterations=o.iterations)
+  try:
+    sim2sim.check_config(physics, SIM2SIM_FLAGS)
+  except ValueError as e:
+    raise cli.UserError(str(e)) from None
+  onnx_path = sim2sim.resolve_onnx(run_dir, o.onnx, o.seed, say, o.robot)
+  spec = robots.load(config.env.robot)
+  meta = export.read_metadata(onnx_path)
+  workers = o.workers or native_battery.default_workers()
+  n = len(battery.conditions(cfg))
+  say(f"robustness in MuJoCo C: {n} conditions x {cfg.episodes} episodes x {cfg.episode_s:g} s "
+      f"at vx {cfg.command_vx:g} m/s; sim_dt {physics.sim_dt} s, {physics.integrator}, "
+      f"{physics.iterations} Newton iterations, full collision geometry; {workers} worker "
+      "process(es)")
+  t0 = time.perf_counter()
+  rows = native_battery.run(onnx_path, spec, cfg, physics, workers, progress=say)
+  wall = time.perf_counter() - t0
+  ctrl_dt = sim2sim.Deployment.from_metadata(meta).ctrl_dt
+  res = native_battery.result(onnx_path, physics, ctrl_dt, cfg, rows,
+                              checkpoint_iteration=meta.get("checkpoint_iteration"),
+                              seed=o.seed, workers=workers, wall_s=wall)
+  native_battery.write(out, res, f"{config.task} {config.algo}, MuJoCo C, iteration "
+                       f"{meta.get('checkpoint_iteration')}, {cfg.episodes} episodes a condition")
+  reports.print_robustness(res)
+  say(f"wrote {out}/robustness.json, robustness.png ({wall:.0f} s)")
   return out

@@ -17,8 +17,8 @@ policy folder, exported again when it is missing or older than the latest checkp
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
+from collections import deque
 import time
 from pathlib import Path
 from typing import Any, Callable, Mapping, NamedTuple
@@ -31,6 +31,7 @@ from mash.checks import MAX_INT32, Bound, check_bounds
 from mash.deploy import export
 from mash.deploy import policy as policy_lib
 from mash.deploy.video import VideoWriter
+from mash.sim import geometry
 from mash.sim import model as model_lib
 from mash.sim import robots
 
@@ -100,6 +101,15 @@ def physics(cfg: Sim2SimConfig) -> model_lib.PhysicsConfig:
   """The MuJoCo C physics settings of ``cfg`` (time step, solver, integrator)."""
   return model_lib.PhysicsConfig(sim_dt=cfg.sim_dt, iterations=cfg.iterations,
                                  ls_iterations=cfg.ls_iterations, integrator=cfg.integrator)
+
+
+def physics_record(cfg: Sim2SimConfig, ctrl_dt: float) -> dict[str, Any]:
+  """The physics a report names (its ``physics``): the engine and its version, the time steps
+  (s), the solver and the collision set; never domain randomization."""
+  return {"engine": "mujoco C " + mujoco.__version__, "sim_dt": cfg.sim_dt,
+          "iterations": cfg.iterations, "ls_iterations": cfg.ls_iterations,
+          "integrator": cfg.integrator, "full_collision": cfg.full_collision,
+          "ctrl_dt": float(ctrl_dt), "domain_randomization": False}
 
 
 def latest_step(run_dir: Path) -> int | None:
@@ -186,16 +196,9 @@ class Deployment(NamedTuple):
                float(meta.get("fall_height_m", 0.4)), float(meta.get("fall_tilt_rad", 1.0)))
 
 
-def quat_to_euler(quat: np.ndarray) -> np.ndarray:
-  """[4] (w, x, y, z) -> [3] roll, pitch, yaw (rad), ZYX: the env's convention."""
-  w, x, y, z = quat
-  return np.array([math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
-                   math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x)))),
-                   math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))])
-
-
 class NativeRobot:
-  """The robot in MuJoCo C: sensor reads and the PD loop, as on hardware."""
+  """The robot in MuJoCo C: sensor reads and the PD loop, as on hardware; :meth:`perturb` changes
+  its floor, torso mass and motors (the robustness battery, :mod:`mash.deploy.native_battery`)."""
 
   def __init__(self, spec: robots.RobotSpec, dep: Deployment, cfg: Sim2SimConfig):
     n_sub = dep.ctrl_dt / cfg.sim_dt
@@ -212,15 +215,52 @@ class NativeRobot:
     missing = [j for j in dep.joints if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) < 0]
     if missing:
       raise export.ExportError(f"joint '{missing[0]}' of the policy is not in robot '{spec.name}'")
+    if tuple(dep.joints) != spec.joints:  # joint-indexed tables (spec.role_indices) would be off
+      raise export.ExportError(f"the policy's joints are not those of robot '{spec.name}' in its "
+                               "order; export it again for this robot")
     ids = [m.joint(j).id for j in dep.joints]
     self.qadr = np.array([m.jnt_qposadr[i] for i in ids])
     self.dadr = np.array([m.jnt_dofadr[i] for i in ids])
     self.act = np.array([m.actuator(j).id for j in dep.joints])
-    n_sole = len(spec.sole_points)
+    n_sole = len(spec.sole_points[0])
     self.soles = np.array([[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)]
                            for side in ("left", "right")])
     self.root = m.body(spec.root_body).id
     self.home = m.key("home").id
+    self.floor_pairs = np.array([m.pair(f"{side}_sole_{k}_floor").id
+                                 for side in ("left", "right") for k in range(n_sole)])
+    self.floor = m.geom("floor").id
+    self._nominal = (m.pair_friction[self.floor_pairs].copy(), m.geom_friction[self.floor].copy(),
+                     int(m.geom_priority[self.floor]), float(m.body_mass[self.root]),
+                     m.body_inertia[self.root].copy(), m.actuator_ctrlrange[self.act].copy())
+    self.strength = np.ones(len(dep.joints))
+
+  def perturb(self, friction: float = -1.0, mass: float = 1.0,
+              strength: np.ndarray | None = None) -> None:
+    """Sets the floor and the robot for the next episodes (the defaults: the nominal robot).
+
+    Args:
+      friction: the floor-sole pairs' sliding friction (both tangential coefficients, as the
+        MJX domain randomization sets it) and the floor's, which then takes precedence in its
+        contacts with the robot's own collision geometry (the feet's boxes touch the floor too
+        under full collision); negative: the model's own.
+      mass: the torso's mass and inertia times this.
+      strength: ``[J]`` each motor's torque and its limit times this (None: 1).
+    """
+    m = self.model
+    pair_friction, floor_friction, floor_priority, body_mass, body_inertia, ctrlrange = (
+        self._nominal)
+    m.pair_friction[self.floor_pairs] = pair_friction
+    m.geom_friction[self.floor] = floor_friction
+    m.geom_priority[self.floor] = floor_priority
+    if friction >= 0:
+      m.pair_friction[self.floor_pairs, 0:2] = friction
+      m.geom_friction[self.floor, 0] = friction
+      m.geom_priority[self.floor] = int(m.geom_priority.max()) + 1
+    m.body_mass[self.root] = body_mass * mass
+    m.body_inertia[self.root] = body_inertia * mass
+    self.strength = np.ones(len(self.dep.joints)) if strength is None else np.asarray(strength)
+    m.actuator_ctrlrange[self.act] = ctrlrange * self.strength[:, None]
 
   def reset(self) -> None:
     mujoco.mj_resetDataKeyframe(self.model, self.data, self.home)
@@ -237,16 +277,17 @@ class NativeRobot:
     touching = d.contact.geom[:d.ncon][d.contact.dist[:d.ncon] < 1e-3]  # [n, 2] geom ids
     contact = np.array([np.isin(touching, self.soles[side]).any() for side in range(2)], float)
     return dict(q=d.qpos[self.qadr].copy(), dq=d.qvel[self.dadr].copy(), quat=quat,
-                euler=quat_to_euler(quat), ang_vel=d.qvel[3:6].copy(), lin_vel=lin_vel,
+                euler=geometry.quat_to_euler(quat), ang_vel=d.qvel[3:6].copy(), lin_vel=lin_vel,
                 base_height=float(d.qpos[2] - np.min(sole_z)), contact=contact,
                 xy=d.qpos[0:2].copy())
 
   def step(self, q_target: np.ndarray) -> None:
-    """One control period: PD torques from ``q_target [J]`` on every physics step."""
+    """One control period: PD torques from ``q_target [J]`` on every physics step (clipped to the
+    limits, then times the motors' :attr:`strength`)."""
     d, dep = self.data, self.dep
     for _ in range(self.n_substeps):
       tau = dep.kp * (q_target - d.qpos[self.qadr]) - dep.kd * d.qvel[self.dadr]
-      d.ctrl[self.act] = np.clip(tau, -dep.torque_limit, dep.torque_limit)
+      d.ctrl[self.act] = self.strength * np.clip(tau, -dep.torque_limit, dep.torque_limit)
       mujoco.mj_step(self.model, d)
 
   def fallen(self, s: Mapping[str, Any]) -> bool:
@@ -257,42 +298,60 @@ class NativeRobot:
 
 
 class Controller:
-  """The policy side: ONNX inference, the gait clock and the action feedback."""
+  """The policy side: ONNX inference, the gait clock and the action feedback.
 
-  def __init__(self, session, dep: Deployment):
-    self.session, self.dep = session, dep
+  With a ``delay`` of d control steps, the action reaches the motors d steps after the policy
+  chose it (zero actions, the default pose, before the first), and the action fed back to the
+  policy is the one applied, as the MJX battery does it (:mod:`mash.analysis.robustness`).
+  """
+
+  def __init__(self, session, dep: Deployment, delay: int = 0):
+    self.session, self.dep, self.delay = session, dep, int(delay)
     self.phase = 0.0
     self.last_action = np.zeros(len(dep.ctrl), np.float32)
+    self.queue: deque[tuple[np.ndarray, np.ndarray]] = deque()
 
   def reset(self, phase: float) -> None:
     self.phase = float(phase)
     self.last_action[:] = 0.0
+    self.queue = deque((self.last_action.copy(), self.dep.default.copy())
+                       for _ in range(self.delay))
 
   def act(self, s: Mapping[str, Any], command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Policy on the current readings; returns (action [A], full PD target [J]) and advances the
-    gait clock (frozen while ``command[0]``, the standing flag, is set)."""
+    """Policy on the current readings; returns the (action [A], full PD target [J]) to apply now
+    and advances the gait clock (frozen while ``command[0]``, the standing flag, is set)."""
     row = lambda x: np.asarray(x, np.float32).reshape(1, -1)
     inputs = {"q": row(s["q"]), "dq": row(s["dq"]), "last_action": row(self.last_action),
               "gait_phase": row([self.phase]), "euler": row(s["euler"]),
               "ang_vel": row(s["ang_vel"]), "command": row(command)}
     action, q_target = self.session.run(list(export.OUTPUTS), inputs)
-    self.last_action = action[0].copy()
+    action = action[0]
     target = self.dep.default.copy()
     target[self.dep.ctrl] = q_target[0]
+    if self.delay:
+      self.queue.append((action, target))
+      action, target = self.queue.popleft()
+    self.last_action = action.copy()
     if command[0] <= 0:
       self.phase = (self.phase + self.dep.ctrl_dt / self.dep.gait_cycle_s) % 1.0
-    return action[0], target
+    return action, target
 
 
 def run_episode(robot: NativeRobot, controller: Controller, command: np.ndarray, steps: int,
-                phase: float, hips: np.ndarray, video: VideoWriter | None = None,
-                frame_every: int = 1, video_steps: int | None = None) -> dict[str, np.ndarray]:
+                phase: float, hips: Any, video: VideoWriter | None = None,
+                frame_every: int = 1, video_steps: int | None = None,
+                sense: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
+                kick: tuple[int, np.ndarray] | None = None) -> dict[str, np.ndarray]:
   """One episode of ``steps`` control steps from the home pose at gait ``phase``.
 
   Returns ``[T, ...]`` arrays in the layout of :func:`mash.analysis.evaluation.rollout` (after a
   fall the last sample is repeated with ``alive = 0``) plus ``phase [T]`` (the clock after each
-  step) and ``xy [T, 2]`` (torso position, m). ``video`` gets a frame every ``frame_every`` steps
-  for the first ``video_steps`` steps (all when None).
+  step) and ``xy [T, 2]`` (torso position, m). ``hips`` indexes the two hip pitches in the joints
+  (``spec.role_indices("hip_pitch", "legs")``). ``video`` gets a frame every ``frame_every``
+  steps for the first ``video_steps`` steps (all when None). ``sense`` maps the readings to what
+  the controller reads (None: the readings), e.g. adds sensor noise; ``kick`` ``(t, [2] m/s)``
+  adds the velocity to the torso's (world frame) after the controller acted at step ``t``,
+  before the physics of that step.
   """
   video_steps = steps if video_steps is None else video_steps
   robot.reset()
@@ -305,7 +364,9 @@ def run_episode(robot: NativeRobot, controller: Controller, command: np.ndarray,
   if video is not None:
     video.add(robot.data)
   for t in range(steps):
-    action, target = controller.act(s, command)
+    action, target = controller.act(s if sense is None else sense(s), command)
+    if kick is not None and t == kick[0]:
+      robot.data.qvel[0:2] += kick[1]
     robot.step(target)
     s = robot.sensors()
     for k, v in (("actions", action), ("base_height", s["base_height"]), ("euler", s["euler"]),
@@ -321,12 +382,6 @@ def run_episode(robot: NativeRobot, controller: Controller, command: np.ndarray,
   traj = {k: np.stack(v + [v[-1]] * (steps - n)) for k, v in out.items()}
   traj["alive"] = alive
   return traj
-
-
-def hip_pitch_index(dep: Deployment, spec: robots.RobotSpec) -> np.ndarray:
-  """[2] positions of the left and right hip-pitch joints (role ``hip_pitch``) in the policy's
-  joint order."""
-  return np.array([dep.joints.index(n) for n in spec.role_joints("hip_pitch", "legs")])
 
 
 class SimResult(NamedTuple):
@@ -372,7 +427,7 @@ def simulate(onnx_path: str | os.PathLike, spec: robots.RobotSpec, cfg: Sim2SimC
   dep = Deployment.from_metadata(export.read_metadata(onnx_path))
   robot = NativeRobot(spec, dep, cfg)
   controller = Controller(export.onnx_session(onnx_path), dep)
-  hips = hip_pitch_index(dep, spec)
+  hips = spec.role_indices("hip_pitch", "legs")
   steps = max(1, int(round(cfg.episode_s / dep.ctrl_dt)))
   command = np.array([0.0, cfg.command_vx, 0.0, 0.0])
   phases = np.random.default_rng(cfg.seed).uniform(0.0, 1.0, cfg.num_episodes)

@@ -32,6 +32,7 @@ from mash.rl import distributed
 from mash.rl.config import derived
 from mash.runs import experiment
 from mash.runs import loop
+from mash.sim import geometry, robots
 
 DISTRIBUTED_ENV = {"coordinator": "MASH_COORDINATOR", "num_processes": "MASH_NUM_PROCESSES",
                    "process_id": "MASH_PROCESS_ID"}
@@ -262,7 +263,7 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
                       "of a preset; --seeds and --set apply on top")
   p.add_argument("--ablation", default="none", help="one of mash.runs.experiment.ABLATIONS")
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
-                 help="a shipped robot (booster_t1, unitree_g1) or a robot file (default: "
+                 help=f"a shipped robot ({', '.join(robots.names())}) or a robot file (default: "
                       "booster_t1; the same as --set env.robot=...)")
   p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                  help="override a config field, e.g. train.learning_rate=1e-3 (repeatable)")
@@ -364,6 +365,9 @@ def train_main(task: str, args: argparse.Namespace, argv: list[str] | None) -> N
       say(f"preset: {cfg.preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
           f"{cfg.train.num_envs} envs x {cfg.train.unroll_length} steps x "
           f"{cfg.train.num_iterations} iterations -> {out}{devices_note()}", flush=True)
+      if cfg.env.stride_reference:
+        say(f"stride reference on {cfg.env.robot}: {geometry.stride_plan(robots.load(cfg.env.robot))}",
+            flush=True)
       summary = loop.train(cfg, out, show_progress=not args.no_progress)
     _say_outcome(say, task, out, summary)
   status = cli.exit_status(summary)

@@ -15,6 +15,8 @@ import secrets
 from pathlib import Path
 from typing import Any, Mapping, Protocol, Sequence
 
+from tensorboardX import SummaryWriter
+
 # Row columns that are the step axis, not logged as scalars.
 STEP_COLUMNS = ("iteration", "env_steps", "wall_s")
 WANDB_ID_FILE = "wandb_id"
@@ -36,7 +38,6 @@ class TensorBoardLogger:
   """Every column of a row as a scalar at its iteration, in ``DIR/tensorboard/``."""
 
   def __init__(self, out: Path):
-    from tensorboardX import SummaryWriter
     self.writer = SummaryWriter(str(out / "tensorboard"))
 
   def log(self, rows: Sequence[Mapping[str, float]]) -> None:

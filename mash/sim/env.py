@@ -89,6 +89,7 @@ class MashEnv(brax_base.Env):
     self.layout = layout_lib.build(spec, config)
     self.n_substeps = int(round(config.ctrl_dt / config.physics.sim_dt))
     self.mj_model = model_lib.build_model(spec, config.physics)
+    geometry.check_mirror(self.mj_model, spec)  # references and pose mirror as the model does
     # This process's first device: MJX's default, jax.devices()[0], belongs to process 0 in a
     # multi-process run, and other processes cannot use arrays placed there.
     self.mjx_model, self._data0 = model_lib.put_physics(self.mj_model, config.physics,
@@ -107,7 +108,7 @@ class MashEnv(brax_base.Env):
     self._tau_max = jnp.array(lay.torque_limit)
     self._root = m.body(spec.root_body).id
     self._feet = np.array([m.body(f).id for f in spec.feet])
-    n_sole = len(spec.sole_points)
+    n_sole = len(spec.sole_points[0])
     self._soles = np.array([[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)]
                             for side in ("left", "right")])
     self._floor_pairs = jnp.array([m.pair(f"{side}_sole_{k}_floor").id
@@ -120,18 +121,7 @@ class MashEnv(brax_base.Env):
     # One step's observation per agent (``observe``); the agents see actor_history of them.
     self.frame_dims = lay.frame_dims
 
-    # q_ref: per joint, which limb's phase drives it and with what multiplier.
-    joint_pos = {j: i for i, j in enumerate(lay.joints)}
-    ref_scale = np.zeros(self.n_joints)
-    ref_limb = np.zeros(self.n_joints, dtype=int)
-    arm_swing = tasks.get(config.task).arm_swing
-    for i, limb in enumerate(spec.limbs):
-      for j, role in zip(limb.joints, limb.roles):
-        if limb.group == "legs" and role in spec.gait_reference:
-          ref_scale[joint_pos[j]] = config.swing_amplitude * spec.gait_reference[role]
-        elif limb.group == "arms" and arm_swing and role == spec.arm_swing_role:
-          ref_scale[joint_pos[j]] = -config.arm_swing_amplitude
-        ref_limb[joint_pos[j]] = i
+    ref_scale, ref_limb = reference_scales(spec, config)
     self._ref_scale = jnp.array(ref_scale)
     self._ref_limb = ref_limb
     self._ref_is_leg = jnp.array([spec.limbs[i].group == "legs" for i in ref_limb])
@@ -303,6 +293,7 @@ class MashEnv(brax_base.Env):
         "liftoff_xy": data.xpos[self._feet][:, :2],
         "feet_xy": jnp.zeros((2, 2)),
         "push": self._sample_push(k_push),
+        **self._fresh_kick(k_push),
         "dr": dr,
         "truncation": jnp.zeros(()),
         "fall": jnp.zeros(()),
@@ -367,7 +358,7 @@ class MashEnv(brax_base.Env):
         q_rel=q_rel, dq=s["dq"], last_action=last_full, q_rel_minus_ref=q_rel - q_ref,
         phase=jnp.stack([jnp.sin(base_angle), jnp.cos(base_angle)]), command=command,
         lin_vel=s["lin_vel"], euler=s["euler"], ang_vel=s["ang_vel"], push=info["push"],
-        friction=dr.friction[None],
+        kick=info.get("kick", jnp.zeros((randomize.KICK_SIZE,))), friction=dr.friction[None],
         mass_offset=randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
         stance=stance, contact=contact))
     return obs
@@ -396,6 +387,7 @@ class MashEnv(brax_base.Env):
     (with ``config.auto_reset``) reset a finished episode."""
     keys = _StepKeys(*jax.random.split(state.info["rng"], 5))
     push = self._next_push(state.info, keys.push)
+    state, kick = self._kick(state, keys.push)
     data, torque = self._actuate(state, action, push, keys.delay)
     command, phase = self._advance_clocks(state.info, keys.command)
     s = self.sensors(data)
@@ -408,6 +400,7 @@ class MashEnv(brax_base.Env):
     fall, truncation = self._terminate(state.info, s, finite)
     info = self._next_info(state.info, keys.rng, s, action, torque, contact, command, phase,
                            push, fall, truncation, finite)
+    info.update(kick)
     next_state = self._outcome(state, data, info, s, contact, terms, paper_terms, finite,
                                fall | truncation)
     if not self.config.auto_reset:
@@ -421,6 +414,33 @@ class MashEnv(brax_base.Env):
                                   / self.config.ctrl_dt)))
     new_push = (info["step"] + 1) % push_every == 0
     return jnp.where(new_push, self._sample_push(key), info["push"])
+
+  def _fresh_kick(self, key: jax.Array) -> dict[str, jax.Array]:
+    """A fresh episode's kick state (none without kicks): no kick yet, and the control steps
+    until the first."""
+    r = self.config.randomization
+    if not r.kicks:
+      return {}
+    timer = randomize.kick_interval_steps(jax.random.fold_in(key, 2), r, self.config.ctrl_dt)
+    return {"kick": jnp.zeros((randomize.KICK_SIZE,)), "kick_timer": timer}
+
+  def _kick(self, state: State, key: jax.Array) -> tuple[State, dict[str, jax.Array]]:
+    """The torso kicked when its timer runs out: its horizontal velocity (world frame) and yaw
+    rate jump by a fresh kick, and the timer restarts; returns the state to step from and the
+    kick state to keep (the last kick, the steps to the next). Nothing without kicks."""
+    r = self.config.randomization
+    if not r.kicks:
+      return state, {}
+    k_kick, k_timer = jax.random.split(jax.random.fold_in(key, 2))  # the other streams unmoved
+    now = state.info["kick_timer"] <= 1
+    kick = jnp.where(now, randomize.sample_kick(k_kick, r), state.info["kick"])
+    timer = jnp.where(now, randomize.kick_interval_steps(k_timer, r, self.config.ctrl_dt),
+                      state.info["kick_timer"] - 1)
+    data = state.pipeline_state
+    qvel = data.qvel.at[0:2].add(jnp.where(now, kick[:2], 0.0)).at[5].add(
+        jnp.where(now, kick[2], 0.0))
+    return state.replace(pipeline_state=data.replace(qvel=qvel)), {"kick": kick,
+                                                                    "kick_timer": timer}
 
   def _actuate(self, state: State, action: jax.Array, push: jax.Array,
                k_delay: jax.Array) -> tuple[mjx.Data, jax.Array]:
@@ -443,6 +463,7 @@ class MashEnv(brax_base.Env):
              * 1e-3 / cfg.physics.sim_dt) if r.enabled else jnp.zeros(())
     target_new, target_old = self.joint_targets(action), state.info["q_target"]
     kp, kd = self._kp * dr.kp_scale, self._kd * dr.kd_scale
+    strength = dr.motor_strength  # scales the torque the motors deliver, their limit included
     noise_scale = r.torque_noise * self._tau_max if r.enabled and r.torque_noise > 0 else None
     k_noise = jax.random.fold_in(k_delay, 1)  # leaves every other random stream as it was
 
@@ -456,7 +477,7 @@ class MashEnv(brax_base.Env):
         noise = jax.random.uniform(jax.random.fold_in(k_noise, k), tau.shape, minval=-1.0,
                                    maxval=1.0) * noise_scale
         applied = jnp.clip(tau + noise, -self._tau_max, self._tau_max)
-      data = data.replace(ctrl=data.ctrl.at[self._act].set(applied))
+      data = data.replace(ctrl=data.ctrl.at[self._act].set(strength * applied))
       return mjx.step(model, data), tau
 
     return jax.lax.fori_loop(0, self.n_substeps, substep, (data, jnp.zeros((self.n_joints,))))
@@ -557,6 +578,28 @@ class MashEnv(brax_base.Env):
         pipeline_state=state.pipeline_state.where(done > 0, fresh.pipeline_state),
         obs=jax.tree.map(pick, fresh.obs, state.obs),
         info=jax.tree.map(pick, fresh.info, info))
+
+
+def reference_scales(spec: robots.RobotSpec, config: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
+  """Per joint of ``spec.joints``, the gait reference's amplitude (rad) and the limb whose phase
+  drives it: ``([J], [J] int)``. A leg joint with a role in ``spec.gait_reference`` bends with the
+  swing (``swing_amplitude`` times the role's multiplier); with the task's arm swing, each arm's
+  ``arm_swing_role`` joint swings against its leg. A right limb's amplitudes carry their role's
+  mirror sign, so the same motion reads the same on a robot whose right joints turn the other
+  way."""
+  ref_scale = np.zeros(len(spec.joints))
+  ref_limb = np.zeros(len(spec.joints), dtype=int)
+  position = {j: i for i, j in enumerate(spec.joints)}
+  arm_swing = tasks.get(config.task).arm_swing
+  for i, limb in enumerate(spec.limbs):
+    for j, role in zip(limb.joints, limb.roles):
+      sign = spec.mirror_sign[role] if limb.side < 0 else 1.0
+      if limb.group == "legs" and role in spec.gait_reference:
+        ref_scale[position[j]] = sign * config.swing_amplitude * spec.gait_reference[role]
+      elif limb.group == "arms" and arm_swing and role == spec.arm_swing_role:
+        ref_scale[position[j]] = -sign * config.arm_swing_amplitude
+      ref_limb[position[j]] = i
+  return ref_scale, ref_limb
 
 
 class _StepKeys(NamedTuple):

@@ -47,7 +47,7 @@ class EnvConfig:
     task: 'bipedal' (legs act, arms held by PD at the default pose) or 'armswing' (all limbs act).
     partition: 'mash' (one group per limb kind: legs share one actor, arms another), 'ppo' (one
       agent controls the whole body: the single-agent baseline), 'per_limb' (each limb its own group).
-    robot: a shipped robot's name (``robots.names()``: the files of ``assets/robots/``) or the
+    robot: a shipped robot's name (``robots.names()``: the files of ``mash/assets/robots/``) or the
       path of a robot file (``.toml``).
     ctrl_dt: control period (s); 50 Hz.
     physics: MJX solver settings.
@@ -158,9 +158,14 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
       raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
   if not robot_given:  # the whole robot file, read and checked (cheap: no model is built)
     try:
-      robots.load(config.robot)
+      spec = robots.load(config.robot)
     except robots.SpecError as e:
       raise ValueError(str(e)) from None
+    missing = [k for k in tasks.get(config.task).acting if not spec.limbs_of(k)]
+    if missing:
+      where = "" if config.robot == spec.name else f" ({config.robot})"
+      raise ValueError(f"task '{config.task}' needs limb group '{missing[0]}', which robot "
+                       f"'{spec.name}'{where} does not have: train 'bipedal' on it")
   check_bounds(config, ENV_BOUNDS)
   for check, section, part in ((model_lib.check_physics, "physics", config.physics),
                                (check_commands, "commands", config.commands),

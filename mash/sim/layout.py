@@ -24,10 +24,12 @@ import numpy as np
 from mash.sim import agents
 from mash.sim import robots
 from mash.sim import tasks
-from mash.sim.env_config import CRITICS, PARTITIONS, EnvConfig
+from mash.checks import check_number
+from mash.sim.env_config import CRITICS, MAX_ACTOR_HISTORY, PARTITIONS, EnvConfig
 
 COMMAND_SIZE = 4  # standing flag (0/1), vx (m/s), vy (m/s), yaw rate (rad/s)
 PUSH_SIZE = 5  # force x, y (N) and torque x, y, z (N m) on the torso
+KICK_SIZE = 3  # the last kick's velocity change: vx, vy (m/s, world frame), yaw rate (rad/s)
 BODY = "body"  # the one group (and agent) of the 'ppo' partition
 
 
@@ -176,6 +178,11 @@ def acting_groups(spec: robots.RobotSpec,
   """Which limbs act, and how they are grouped into shared-actor agent groups:
   ``((group name, its limbs), ...)``."""
   kinds = tasks.get(config.task).acting
+  missing = [k for k in kinds if not spec.limbs_of(k)]
+  if missing:
+    raise robots.SpecError(f"task '{config.task}' needs limb group '{missing[0]}', which robot "
+                           f"'{spec.name}' does not have (its groups: "
+                           f"{', '.join(dict.fromkeys(l.group for l in spec.limbs))})")
   acting = tuple(l for l in spec.limbs if l.group in kinds)
   if config.partition == "mash":
     return tuple((k, spec.limbs_of(k)) for k in kinds)
@@ -198,17 +205,19 @@ def actor_segments(n_joints: int, n_last_action: int, n_phase_limbs: int,
   return Segments(tuple(parts))
 
 
-def critic_segments(n_joints: int, n_legs: int, n_feet: int) -> Segments:
+def critic_segments(n_joints: int, n_legs: int, n_feet: int, kicks: bool = False) -> Segments:
   """The global (privileged) critic observation: joint angles minus the default pose, velocities,
   last actions of every joint (0 where not controlled), angle error to the gait reference
   ``q_rel - q_ref``, the base gait phase's sin/cos, the command, torso linear velocity (torso
-  frame), euler and angular velocity, the push, floor friction, total mass minus nominal (kg), the
-  legs' reference stance mask and the feet's contact mask."""
+  frame), euler and angular velocity, the push, with ``kicks`` the last velocity kick, floor
+  friction, total mass minus nominal (kg), the legs' reference stance mask and the feet's contact
+  mask."""
+  kick = (Segment("kick", KICK_SIZE),) if kicks else ()
   return Segments((
       Segment("q_rel", n_joints), Segment("dq", n_joints), Segment("last_action", n_joints),
       Segment("q_rel_minus_ref", n_joints), Segment("phase", 2), Segment("command", COMMAND_SIZE),
       Segment("lin_vel", 3), Segment("euler", 3), Segment("ang_vel", 3),
-      Segment("push", PUSH_SIZE), Segment("friction", 1), Segment("mass_offset", 1),
+      Segment("push", PUSH_SIZE), *kick, Segment("friction", 1), Segment("mass_offset", 1),
       Segment("stance", n_legs), Segment("contact", n_feet)))
 
 
@@ -232,8 +241,7 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
                                (config.critic, CRITICS, "critic")):
     if value not in allowed:
       raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
-  if config.actor_history < 1:
-    raise ValueError(f"actor_history must be >= 1 (control steps), got {config.actor_history}")
+  check_number("actor_history", config.actor_history, 1, MAX_ACTOR_HISTORY, "control steps")
   joints = spec.joints
   position = {j: i for i, j in enumerate(joints)}
   limb_index = {l.name: i for i, l in enumerate(spec.limbs)}
@@ -268,7 +276,7 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
     critic = Segments(tuple(Segment(m, width) for g in groups for m in g.members))
   else:
     n_legs = sum(1 for l in spec.limbs if l.group == "legs")
-    critic = critic_segments(len(joints), n_legs, len(spec.feet))
+    critic = critic_segments(len(joints), n_legs, len(spec.feet), config.randomization.kicks)
 
   return Layout(
       joints=joints,

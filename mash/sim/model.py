@@ -10,7 +10,6 @@ reads an env's contacts from either.
 from __future__ import annotations
 
 import dataclasses
-import importlib.resources
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +18,7 @@ import numpy as np
 from mujoco import mjx
 
 from mash.checks import check_number
+from mash.sim import robots
 from mash.sim.robots import RobotSpec, SpecError
 
 
@@ -84,39 +84,6 @@ def check_physics(physics: PhysicsConfig) -> None:
                      'pip install -e ".[warp]" (or leave impl at jax)')
 
 
-def mjcf_path(spec: RobotSpec) -> str:
-  """Locates the robot's MJCF in its asset package; one clear error if the package is missing."""
-  try:
-    root = importlib.resources.files(spec.asset_package)
-  except ModuleNotFoundError:
-    raise SpecError(
-        f"robot '{spec.name}': asset package '{spec.asset_package}' is not installed "
-        f"(pip install {spec.asset_package.replace('_', '-')})") from None
-  path = root / spec.asset_path
-  if not path.is_file():
-    raise SpecError(f"robot '{spec.name}': '{spec.asset_path}' not found in '{spec.asset_package}'")
-  return str(path)
-
-
-def _check_names(spec: RobotSpec, mj: mujoco.MjSpec) -> None:
-  """Every joint and body the spec names is in the model (one line naming the first that is not)."""
-  joints = {j.name for j in mj.joints}
-  bodies = {b.name for b in mj.bodies}
-  for limb in spec.limbs:
-    for joint, role in zip(limb.joints, limb.roles):
-      if joint not in joints:
-        raise SpecError(f"robot '{spec.name}': joint '{joint}' (limb '{limb.name}', role "
-                        f"'{role}') is not in the model")
-  for name in spec.locked_joints:
-    if name not in joints:
-      raise SpecError(f"robot '{spec.name}': locked joint '{name}' is not in the model")
-  for name, what in ((spec.root_body, "root_body"), (spec.feet[0], "feet"),
-                     (spec.feet[1], "feet"), *((b, "contact.capsules") for b in
-                                               spec.collision_capsules)):
-    if name not in bodies:
-      raise SpecError(f"robot '{spec.name}': {what} body '{name}' is not in the model")
-
-
 def build_model(spec: RobotSpec, physics: PhysicsConfig = PhysicsConfig(),
                 full_collision: bool = False) -> mujoco.MjModel:
   """Builds the MuJoCo model of ``spec`` from its MJCF, edited in code.
@@ -131,8 +98,11 @@ def build_model(spec: RobotSpec, physics: PhysicsConfig = PhysicsConfig(),
     A compiled ``MjModel`` with motor actuators on ``spec.joints`` (in that order), a floor, the sole
     spheres, the penalty capsules and their pairs, and a ``home`` keyframe.
   """
-  mj = mujoco.MjSpec.from_file(mjcf_path(spec))
-  _check_names(spec, mj)
+  mj = mujoco.MjSpec.from_file(str(robots.mjcf_file(spec)))
+  try:
+    robots.check_names(spec, mj)
+  except SpecError as e:  # a spec built in code (a robot file's were checked when read)
+    raise SpecError(f"robot '{spec.name}': {e}") from None
   for element in [*mj.keys, *mj.actuators, *mj.sensors]:
     mj.delete(element)
   for name in spec.locked_joints:
@@ -162,9 +132,9 @@ def _add_contacts(mj: mujoco.MjSpec, spec: RobotSpec, full_collision: bool) -> N
   floor.contype = 1 if full_collision else 0
   floor.conaffinity = 1 if full_collision else 0
   mj.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
-  for side, foot in zip(("left", "right"), spec.feet):
+  for side, foot, points in zip(("left", "right"), spec.feet, spec.sole_points):
     body = mj.body(foot)
-    for k, p in enumerate(spec.sole_points):
+    for k, p in enumerate(points):
       g = body.add_geom(name=f"{side}_sole_{k}", type=mujoco.mjtGeom.mjGEOM_SPHERE,
                         size=[spec.sole_radius, 0, 0], pos=p, rgba=[1, 0.3, 0.3, 1], group=4)
       g.contype = 0

@@ -62,6 +62,15 @@ class DomainRandConfig:
       episodes. 0 (default): every floor from ``friction`` (or its curriculum). Evaluation never
       applies it.
     slippery_friction: the range of those floors.
+    kick_velocity: (ours; the paper has none) velocity kicks of the torso: every
+      ``kick_interval_s`` the torso's horizontal velocity jumps by a size drawn from this range
+      (m/s) in a direction uniform in the plane, as MuJoCo Playground's and mjlab's velocity tasks
+      shove their robots. A shove, unlike the paper's per-step pushes (zero-mean, 1-2 N s net a
+      second), is what a robot meets; the critic sees the last kick (privileged), the actors do
+      not. (0, 0) (default): no kicks, and no kick in the env state or the critic.
+    kick_interval_s: seconds between kicks, drawn anew after each one.
+    kick_yaw_rate: a yaw-rate kick (rad/s) drawn with each velocity kick, sign uniform; (0, 0):
+      none.
 
 
   The sane range of every number is checked by :func:`check_config`.
@@ -86,6 +95,14 @@ class DomainRandConfig:
   friction_ramp_steps: int = 0
   slippery_share: float = 0.0
   slippery_friction: tuple[float, float] = (0.1, 0.3)
+  kick_velocity: tuple[float, float] = (0.0, 0.0)
+  kick_interval_s: tuple[float, float] = (5.0, 10.0)
+  kick_yaw_rate: tuple[float, float] = (0.0, 0.0)
+
+  @property
+  def kicks(self) -> bool:
+    """Whether the torso is kicked (a velocity or yaw-rate range above 0, randomization on)."""
+    return self.enabled and (self.kick_velocity[1] > 0 or self.kick_yaw_rate[1] > 0)
 
 
 MAX_INTERVAL_S = 1e5  # s, about a day: a longer hold is a typo (and its step count stays int32)
@@ -108,6 +125,9 @@ BOUNDS = (
     Bound("friction_initial", 0.0, 10.0, open_low=True, pair=True),
     Bound("push_interval_s", 0.0, MAX_INTERVAL_S, "s"),
     Bound("friction_ramp_steps", 0, MAX_INT32, "steps"),
+    Bound("kick_velocity", 0.0, 10.0, "m/s", pair=True),
+    Bound("kick_interval_s", 0.0, MAX_INTERVAL_S, "s", open_low=True, pair=True),
+    Bound("kick_yaw_rate", 0.0, 20.0, "rad/s", pair=True),
 )
 
 
@@ -140,6 +160,8 @@ class DomainParams:
     gravity: [] |g|.
     joint_damping: [n_joints], joint_friction: [n_joints], armature: [n_joints].
     kp_scale: [n_joints], kd_scale: [n_joints].
+    motor_strength: [n_joints] multiplier of each motor's torque, its limit included (1: as the
+      robot file says; not randomized in training: the robustness battery weakens motors).
   """
 
   friction: jax.Array
@@ -151,6 +173,7 @@ class DomainParams:
   armature: jax.Array
   kp_scale: jax.Array
   kd_scale: jax.Array
+  motor_strength: jax.Array
 
 
 class JointNominal(NamedTuple):
@@ -172,7 +195,8 @@ def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
       com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81),
       joint_damping=jnp.asarray(joints.damping, jnp.float32) * ones,
       joint_friction=jnp.asarray(joints.friction, jnp.float32) * ones,
-      armature=jnp.asarray(joints.armature, jnp.float32) * ones, kp_scale=ones, kd_scale=ones)
+      armature=jnp.asarray(joints.armature, jnp.float32) * ones, kp_scale=ones, kd_scale=ones,
+      motor_strength=ones)
 
 
 def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
@@ -215,7 +239,8 @@ def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
       joint_friction=u(k[5], config.joint_friction, (n_joints,)),
       armature=u(k[6], config.armature, (n_joints,)),
       kp_scale=u(k[7], config.kp_scale, (n_joints,)),
-      kd_scale=u(k[8], config.kd_scale, (n_joints,)))
+      kd_scale=u(k[8], config.kd_scale, (n_joints,)),
+      motor_strength=jnp.ones((n_joints,)))
 
 
 def apply(model: mjx.Model, params: DomainParams, dof_index: jax.Array, root_body: int,
@@ -246,3 +271,25 @@ def apply(model: mjx.Model, params: DomainParams, dof_index: jax.Array, root_bod
 def total_mass(model: mjx.Model, params: DomainParams) -> jax.Array:
   """Randomized total mass (kg), which the critic observes."""
   return jnp.sum(model.body_mass * params.mass_scale)
+
+
+KICK_SIZE = 3  # the torso's velocity change: vx, vy (m/s, world frame) and yaw rate (rad/s)
+
+
+def sample_kick(key: jax.Array, config: DomainRandConfig) -> jax.Array:
+  """``[3]`` one kick: a horizontal velocity change of a size from ``kick_velocity`` in a
+  direction uniform in the plane (m/s, world frame), and a yaw-rate change of a size from
+  ``kick_yaw_rate`` with a random sign (rad/s)."""
+  k_size, k_dir, k_yaw, k_sign = jax.random.split(key, 4)
+  size = jax.random.uniform(k_size, minval=config.kick_velocity[0],
+                            maxval=config.kick_velocity[1])
+  angle = jax.random.uniform(k_dir, maxval=2 * jnp.pi)
+  yaw = jax.random.uniform(k_yaw, minval=config.kick_yaw_rate[0], maxval=config.kick_yaw_rate[1])
+  sign = jnp.where(jax.random.bernoulli(k_sign), 1.0, -1.0)
+  return jnp.stack([size * jnp.cos(angle), size * jnp.sin(angle), sign * yaw])
+
+
+def kick_interval_steps(key: jax.Array, config: DomainRandConfig, ctrl_dt: float) -> jax.Array:
+  """``[]`` int32 control steps until the next kick, from ``kick_interval_s`` (at least 1)."""
+  s = jax.random.uniform(key, minval=config.kick_interval_s[0], maxval=config.kick_interval_s[1])
+  return jnp.maximum(1, jnp.round(s / ctrl_dt)).astype(jnp.int32)
