@@ -33,9 +33,10 @@ def _parser() -> cli.Parser:
   p.add_argument("--out", default=None,
                  help="JSON file (default benchmark.json, or breakdown.json with --breakdown)")
   p.add_argument("--sweep", default=None, help="batch | physics")
-  p.add_argument("--breakdown", action="store_true",
-                 help="time the env rollout, the updates and the rest of a MASH and a PPO "
-                      "iteration")
+  p.add_argument(
+      "--breakdown", action="store_true",
+      help="time the env rollout, the updates and the rest of a MASH and a PPO "
+      "iteration")
   p.add_argument("--batches", default="64,256,1024,4096")
   p.add_argument("--stages", default=",".join(bench.STAGES),
                  help=f"comma-separated subset of {','.join(bench.STAGES)} (default: all)")
@@ -67,8 +68,8 @@ def _check(args: argparse.Namespace) -> None:
   if args.sweep in ("batch", "physics"):
     cli.check_writable_dir(args.dir, "--dir")
   else:
-    cli.check_writable_file(
-        args.out or ("breakdown.json" if args.breakdown else "benchmark.json"), "--out")
+    cli.check_writable_file(args.out or ("breakdown.json" if args.breakdown else "benchmark.json"),
+                            "--out")
 
 
 def _batches(text: str) -> list[int]:

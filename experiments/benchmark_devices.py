@@ -51,8 +51,7 @@ def _check(args: argparse.Namespace) -> None:
   if not (1 <= args.steps <= MAX_STEPS and 1 <= args.repeats <= MAX_REPEATS):
     raise cli.UserError(f"--steps must be in [1, {MAX_STEPS}] and --repeats in [1, "
                         f"{MAX_REPEATS}], got {args.steps} and {args.repeats}")
-  if args.train and (args.train_batch < 4 or args.train_batch % 4
-                     or args.train_batch > MAX_BATCH):
+  if args.train and (args.train_batch < 4 or args.train_batch % 4 or args.train_batch > MAX_BATCH):
     raise cli.UserError(f"--train-batch must be a multiple of 4 in [4, {MAX_BATCH}], got "
                         f"{args.train_batch}")
   cli.check_task(args.task)
@@ -67,8 +66,10 @@ def main(argv: list[str] | None = None) -> None:
   config = devices.ScalingConfig(args.batch, args.steps, args.repeats, args.task, args.train,
                                  args.train_batch, args.platform)
   if args.worker is not None:
-    devices.run_worker(config, devices.Worker(args.worker, args.process_id, args.num_processes,
-                                              args.coordinator, args.sync_dir, args.result))
+    devices.run_worker(
+        config,
+        devices.Worker(args.worker, args.process_id, args.num_processes, args.coordinator,
+                       args.sync_dir, args.result))
     return
   with cli.user_errors():
     _check(args)

@@ -24,9 +24,10 @@ def main(argv=None) -> None:
   p.add_argument("--check", type=int, default=256,
                  help="random observations in the check (0: skip)")
   p.add_argument("--tolerance", type=float, default=1e-5, help="max |onnx - jax| allowed")
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
-                 help="the robot file to use instead of the run's env.robot (the same robot, "
-                      "e.g. a user's file that has moved)")
+  p.add_argument(
+      "--robot", default=None, metavar="NAME|FILE.toml",
+      help="the robot file to use instead of the run's env.robot (the same robot, "
+      "e.g. a user's file that has moved)")
   args = p.parse_args(argv)
   with common.user_errors():
     common.check_paths({"--run": args.run, "--out": args.out})
@@ -41,18 +42,20 @@ def main(argv=None) -> None:
     parts = export.policy_parts(policy)
     path = export.export_policy(parts, out)
     meta = export.read_metadata(path)
-    print(f"exported {args.run} (iteration {policy.iteration}, seed {policy.seed}, "
-          f"{policy.config.task}/{policy.config.algo}) -> {path} "
-          f"({path.stat().st_size / 1024:.0f} KiB): "
-          f"{len(meta['joint_order'])} joints in, {len(meta['controlled_joints'])} targets out "
-          f"at {meta['control_rate_hz']:g} Hz", flush=True)
+    print(
+        f"exported {args.run} (iteration {policy.iteration}, seed {policy.seed}, "
+        f"{policy.config.task}/{policy.config.algo}) -> {path} "
+        f"({path.stat().st_size / 1024:.0f} KiB): "
+        f"{len(meta['joint_order'])} joints in, {len(meta['controlled_joints'])} targets out "
+        f"at {meta['control_rate_hz']:g} Hz", flush=True)
     if args.check:
       diff = export.verify(path, parts, n=args.check)
       worst = max(diff["action"], diff["q_target"])
       verdict = "OK" if worst <= args.tolerance else "FAILED"
-      print(f"check on {args.check} random observations: max |onnx - jax| action "
-            f"{diff['action']:.2e}, q_target {diff['q_target']:.2e} (tolerance "
-            f"{args.tolerance:.0e}): {verdict}", flush=True)
+      print(
+          f"check on {args.check} random observations: max |onnx - jax| action "
+          f"{diff['action']:.2e}, q_target {diff['q_target']:.2e} (tolerance "
+          f"{args.tolerance:.0e}): {verdict}", flush=True)
       if worst > args.tolerance:
         raise common.UserError(f"the ONNX policy differs from JAX by {worst:.2e} > "
                                f"{args.tolerance:.0e}; the file is kept at {path} for inspection")

@@ -30,15 +30,15 @@ def main(argv=None) -> None:
                     epilog="\n".join(__doc__.splitlines()[2:]))
   p.add_argument("--policy", required=True,
                  help="shipped policy name, policy folder, .onnx file or run directory")
-  p.add_argument("--command", type=play.command_arg, default=(0.4, 0.0, 0.0),
-                 metavar="VX[,VY,YAW]", help="velocity command when playing headless (default "
+  p.add_argument("--command", type=play.command_arg, default=(0.4, 0.0, 0.0), metavar="VX[,VY,YAW]",
+                 help="velocity command when playing headless (default "
                  "0.4,0,0)")
   p.add_argument("--stand", action="store_true", help="the standing command instead")
-  p.add_argument("--seconds", type=play.seconds_arg, default=10.0,
-                 help="how long to play headless")
-  p.add_argument("--video", default=None, metavar="OUT.mp4",
-                 help="write an MP4 (or an animated GIF: OUT.gif, 400x300 at 12.5 fps) instead of "
-                      "opening the viewer (the default without a display: <policy name>.mp4)")
+  p.add_argument("--seconds", type=play.seconds_arg, default=10.0, help="how long to play headless")
+  p.add_argument(
+      "--video", default=None, metavar="OUT.mp4",
+      help="write an MP4 (or an animated GIF: OUT.gif, 400x300 at 12.5 fps) instead of "
+      "opening the viewer (the default without a display: <policy name>.mp4)")
   p.add_argument("--phase", type=float, default=0.0, help="initial gait phase in [0, 1)")
   p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
                  help="the robot file to play on (default: the shipped robot the policy names)")

@@ -39,9 +39,10 @@ def main(argv=None) -> None:
     if not 0 < args.seconds <= 600:
       raise cli.UserError(f"--seconds must be in (0, 600], got {args.seconds}")
     cli.check_writable_dir(args.out, "--out")
-    print(f"checking {args.robot}: stand {args.seconds:g} s in MuJoCo C"
-          + ("" if args.no_mjx else " and in MJX (compiling takes about a minute on a CPU)")
-          + ", one gait cycle of the reference", flush=True)
+    print(
+        f"checking {args.robot}: stand {args.seconds:g} s in MuJoCo C" +
+        ("" if args.no_mjx else " and in MJX (compiling takes about a minute on a CPU)") +
+        ", one gait cycle of the reference", flush=True)
     findings, _ = robot_check.check(args.robot, args.seconds, Path(args.out), not args.no_mjx)
   for f in findings:
     where = f" [{f.field}]" if f.field and f.level != "ok" else ""

@@ -34,9 +34,10 @@ def main(argv=None) -> None:
                     epilog="\n".join(__doc__.splitlines()[2:]))
   p.add_argument("--run", required=True,
                  help="run directory, or policy folder (mash.deploy.policy)")
-  p.add_argument("--episodes", type=int, default=None,
-                 help="MuJoCo C episodes (default 4), or per condition with --robustness "
-                      "(default 64, a multiple of 8)")
+  p.add_argument(
+      "--episodes", type=int, default=None,
+      help="MuJoCo C episodes (default 4), or per condition with --robustness "
+      "(default 64, a multiple of 8)")
   p.add_argument("--seconds", type=float, default=None,
                  help="episode duration (s; default 20, or 8 with --robustness)")
   p.add_argument("--command-vx", type=float, default=None, help="forward command (m/s, default "
@@ -50,23 +51,28 @@ def main(argv=None) -> None:
   p.add_argument("--viewer", action="store_true",
                  help="interactive mujoco viewer (needs a display); arrows change vx / yaw rate")
   p.add_argument("--no-mjx", action="store_true", help="skip the MJX side of the comparison")
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
-                 help="the robot file to use instead of the run's env.robot (the same robot, "
-                      "e.g. a user's file that has moved)")
-  p.add_argument("--mjx-episodes", type=int, default=None,
-                 help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing "
-                      "(default 4)")
-  p.add_argument("--mjx-dr", action="store_true",
-                 help="that MJX evaluation with domain randomization (default: off, the nominal "
-                      "robot, like the MuJoCo C side)")
-  p.add_argument("--robustness", action="store_true",
-                 help="the robustness battery in MuJoCo C instead (writes "
-                      "DIR/sim2sim_robustness/robustness.json, robustness.png)")
+  p.add_argument(
+      "--robot", default=None, metavar="NAME|FILE.toml",
+      help="the robot file to use instead of the run's env.robot (the same robot, "
+      "e.g. a user's file that has moved)")
+  p.add_argument(
+      "--mjx-episodes", type=int, default=None,
+      help="episodes of the MJX evaluation when DIR/eval/metrics.json is missing "
+      "(default 4)")
+  p.add_argument(
+      "--mjx-dr", action="store_true",
+      help="that MJX evaluation with domain randomization (default: off, the nominal "
+      "robot, like the MuJoCo C side)")
+  p.add_argument(
+      "--robustness", action="store_true",
+      help="the robustness battery in MuJoCo C instead (writes "
+      "DIR/sim2sim_robustness/robustness.json, robustness.png)")
   p.add_argument("--workers", type=int, default=None, metavar="N",
                  help="--robustness: processes running episodes (default: one per CPU core)")
-  p.add_argument("--battery-seed", type=int, default=None, metavar="S",
-                 help="--robustness: the battery's seed (its floors, noise; default 2026, the "
-                      "MJX battery's); --seed still picks the seed of a multi-seed run")
+  p.add_argument(
+      "--battery-seed", type=int, default=None, metavar="S",
+      help="--robustness: the battery's seed (its floors, noise; default 2026, the "
+      "MJX battery's); --seed still picks the seed of a multi-seed run")
   args = p.parse_args(argv)
   options = native_report.Options(**vars(args))
   try:

@@ -11,10 +11,10 @@ MAX_INT32 = 2**31 - 1
 
 def _text(x: Any) -> str:
   """A bound as it reads best in a message: ints in full, floats short (``1e+06``, ``0.5``)."""
-  return str(x) if isinstance(x, int) else f'{x:g}'
+  return str(x) if isinstance(x, int) else f"{x:g}"
 
 
-def check_number(name: str, value: Any, low: float, high: float, unit: str = '',
+def check_number(name: str, value: Any, low: float, high: float, unit: str = "",
                  open_low: bool = False) -> None:
   """Checks that ``value`` lies in ``[low, high]`` (``(low, high]`` with ``open_low``); NaN never
   does, and inf does not either, the bounds being finite.
@@ -28,7 +28,7 @@ def check_number(name: str, value: Any, low: float, high: float, unit: str = '',
     raise ValueError(f"{name} must be in {interval}{' ' + unit if unit else ''}, got {value}")
 
 
-def check_range(name: str, value: Any, low: float, high: float, unit: str = '',
+def check_range(name: str, value: Any, low: float, high: float, unit: str = "",
                 open_low: bool = False) -> None:
   """Checks that ``value`` is a range ``(lo, hi)`` with ``low <= lo <= hi <= high`` (``low < lo``
   with ``open_low``); NaN is never in it.

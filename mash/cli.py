@@ -16,8 +16,7 @@ from typing import Iterator
 import jax
 
 from mash import errors
-from mash.sim import robots
-from mash.sim import tasks
+from mash.sim import robots, tasks
 
 
 class UserError(errors.InputError):
@@ -56,12 +55,14 @@ def user_errors() -> Iterator[None]:
       raise
     name = getattr(e, "filename", None)
     where = f" '{shown_path(name)}'" if name else ""
-    print(f"error: cannot write{one_line(where)}: {os.strerror(code)}; free space, then run the "
-          "command again", file=sys.stderr, flush=True)
+    print(
+        f"error: cannot write{one_line(where)}: {os.strerror(code)}; free space, then run the "
+        "command again", file=sys.stderr, flush=True)
     sys.exit(1)
   except KeyboardInterrupt:
-    print("\ninterrupted (files already on disk are kept; a run resumes from its last complete "
-          "checkpoint)", file=sys.stderr, flush=True)
+    print(
+        "\ninterrupted (files already on disk are kept; a run resumes from its last complete "
+        "checkpoint)", file=sys.stderr, flush=True)
     sys.exit(130)
 
 

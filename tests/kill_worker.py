@@ -43,6 +43,7 @@ def _die(marks: Path, name: str) -> None:
 def _watch_calls(marks: Path, kill_call: int | None) -> None:
   """Wraps the trainer ``mash.runs.loop.train`` builds: marks each call, kills in call ``kill_call``."""
   import jax
+
   from mash.runs import loop as runs
   build = runs.build_trainer
 
@@ -58,8 +59,8 @@ def _watch_calls(marks: Path, kill_call: int | None) -> None:
         return epoch(state)
       running = threading.Event()
       running.set()
-      timer = threading.Timer(SECONDS_INTO_CALL, lambda: running.is_set() and _die(
-          marks, f"killed_in_call_{n}"))
+      timer = threading.Timer(SECONDS_INTO_CALL,
+                              lambda: running.is_set() and _die(marks, f"killed_in_call_{n}"))
       timer.start()
       jax.block_until_ready(epoch(state))
       running.clear()

@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash.sim import agents
-from mash.runs import experiment
 from mash.rl import networks
+from mash.runs import experiment
+from mash.sim import agents
 
 
 @pytest.mark.parametrize("ablation", experiment.ABLATIONS)
@@ -40,8 +40,8 @@ def test_ablation_switches_change_what_they_name():
   assert make("no_agent_id").env.agent_id is False
   assert make("legs_only").env.task == "bipedal"
   per_limb = experiment.make_env(make("per_limb"))
-  assert [g.name for g in per_limb.agent_groups] == ["left_leg", "right_leg", "left_arm",
-                                                      "right_arm"]
+  assert [g.name for g in per_limb.agent_groups
+         ] == ["left_leg", "right_leg", "left_arm", "right_arm"]
   no_id = experiment.make_env(make("no_agent_id"))
   assert [g.obs_dim for g in no_id.agent_groups] == [30, 24]
   with pytest.raises(experiment.ConfigError):

@@ -41,9 +41,10 @@ def _imported(tree: ast.AST, top_level_only: bool) -> set[str]:
 
 def _graph() -> dict[str, set[str]]:
   modules = _modules()
-  return {name: {m for m in _imported(ast.parse(path.read_text()), True)
-                 if m in modules and m != name}
-          for name, path in modules.items()}
+  return {
+      name: {m for m in _imported(ast.parse(path.read_text()), True) if m in modules and m != name}
+      for name, path in modules.items()
+  }
 
 
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -93,8 +94,10 @@ def test_imports_sit_at_the_top_unless_optional():
             named = [f"{sub.module}.{a.name}" for a in sub.names]
           else:
             continue
-          inner += [f"{name}.{node.name}: {m}" for m in named
-                    if not any(m == o or m.startswith(o + ".") for o in OPTIONAL)]
+          inner += [
+              f"{name}.{node.name}: {m}" for m in named
+              if not any(m == o or m.startswith(o + ".") for o in OPTIONAL)
+          ]
   assert inner == []
 
 

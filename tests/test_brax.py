@@ -42,6 +42,6 @@ def test_brax_ppo_trains_on_the_env():
   assert np.isfinite(metrics["training/total_loss"]) and metrics["training/v_loss"] > 0
   # The trained policy acts on the view's observation.
   state = jax.jit(env.reset)(jax.random.PRNGKey(1))
-  action, _ = make_policy(params, deterministic=True)(
-      jax.tree.map(lambda x: x[None], state.obs), jax.random.PRNGKey(2))
+  action, _ = make_policy(params, deterministic=True)(jax.tree.map(lambda x: x[None], state.obs),
+                                                      jax.random.PRNGKey(2))
   assert action.shape == (1, 12) and np.all(np.abs(np.asarray(action)) <= 1.0)

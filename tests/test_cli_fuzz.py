@@ -19,8 +19,17 @@ from typing import Callable
 
 import pytest
 
-from experiments import (armswing, benchmark, benchmark_devices, bipedal, compare, evaluate, export,
-                         play, sim2sim)
+from experiments import (
+    armswing,
+    benchmark,
+    benchmark_devices,
+    bipedal,
+    compare,
+    evaluate,
+    export,
+    play,
+    sim2sim,
+)
 from mash.runs import experiment
 
 CASES_PER_ENTRY = 50
@@ -35,8 +44,8 @@ GOOD_SETS = ("train.learning_rate=1e-3", "env.action_scale=0.3", "train.seed=3",
 BAD_SETS = ("train.num_envs=abc", "learning_rate", "=", "", "train.nope=1", "env.commands=1",
             "train.actor_hidden=", "train.actor_hidden=0,64", "env.physics.sim_dt=0",
             "env.ctrl_dt=nan", "env.randomization.push_force=nan,1", "train.num_envs=1e999",
-            "env.commands.vx=0.1", "trаin.seed=1", "env.physics.integrator=rk4",
-            "seeds=100000", "train.gamma=" + "9" * 5000, "env.task=ünï", "x=\n")
+            "env.commands.vx=0.1", "trаin.seed=1", "env.physics.integrator=rk4", "seeds=100000",
+            "train.gamma=" + "9" * 5000, "env.task=ünï", "x=\n")
 
 
 class _Started(Exception):
@@ -67,18 +76,44 @@ def places(tmp_path):
   (tmp_path / "file.txt").write_text("x")
   long_name = str(tmp_path / ("a" * 5000))
   long_path = str(tmp_path) + "/" + "/".join(["d" * 100] * 50)
-  runs_ = [str(run), str(broken), str(junk), str(odd), str(tmp_path / "missing"),
-           str(tmp_path / "file.txt"), "", "ünï路径🤖/run", long_name, long_path, "/proc/1/x",
-           str(tmp_path / "new\nline"), str(tmp_path / "sur\udcffrogate"), "."]
-  outs = [str(tmp_path / "out"), str(tmp_path / "ünï路径🤖" / "out"), str(run), "", long_name,
-          long_path, "/proc/forbidden", str(tmp_path / "file.txt"), str(tmp_path / "x\ny")]
-  policies = ["t1_bipedal_mash", str(run), "no_such_policy", "", long_name, "/proc/1/x",
-              str(tmp_path / "file.txt"), "ünï路径🤖"]
-  return {"run": runs_, "out": outs, "policy": policies,
-          "file": [str(tmp_path / "p.onnx"), str(tmp_path / "ünï.onnx"), str(run), "",
-                   long_name, "/proc/x.onnx", str(tmp_path / "missing" / "deep" / "p.onnx")],
-          "mp4": [str(tmp_path / "v.mp4"), str(tmp_path / "v.avi"), "", long_name + ".mp4",
-                  "/proc/x.mp4", str(tmp_path / "ünï路径🤖.mp4"), str(run)]}
+  runs_ = [
+      str(run),
+      str(broken),
+      str(junk),
+      str(odd),
+      str(tmp_path / "missing"),
+      str(tmp_path / "file.txt"), "", "ünï路径🤖/run", long_name, long_path, "/proc/1/x",
+      str(tmp_path / "new\nline"),
+      str(tmp_path / "sur\udcffrogate"), "."
+  ]
+  outs = [
+      str(tmp_path / "out"),
+      str(tmp_path / "ünï路径🤖" / "out"),
+      str(run), "", long_name, long_path, "/proc/forbidden",
+      str(tmp_path / "file.txt"),
+      str(tmp_path / "x\ny")
+  ]
+  policies = [
+      "t1_bipedal_mash",
+      str(run), "no_such_policy", "", long_name, "/proc/1/x",
+      str(tmp_path / "file.txt"), "ünï路径🤖"
+  ]
+  return {
+      "run":
+          runs_, "out":
+              outs, "policy":
+                  policies, "file": [
+                      str(tmp_path / "p.onnx"),
+                      str(tmp_path / "ünï.onnx"),
+                      str(run), "", long_name, "/proc/x.onnx",
+                      str(tmp_path / "missing" / "deep" / "p.onnx")
+                  ], "mp4": [
+                      str(tmp_path / "v.mp4"),
+                      str(tmp_path / "v.avi"), "", long_name + ".mp4", "/proc/x.mp4",
+                      str(tmp_path / "ünï路径🤖.mp4"),
+                      str(run)
+                  ]
+  }
 
 
 def _value(rng: random.Random, kind: str, places: dict) -> str:
@@ -97,49 +132,53 @@ def _value(rng: random.Random, kind: str, places: dict) -> str:
 # Each entry point: how to call its main, and its flags as (flag, kind); kind None: a switch;
 # "float2": two numbers. A flag in REQUIRED goes into most cases.
 TRAIN_FLAGS = (("--algo", "mash|ppo|sac"), ("--preset", "smoke|cpu|gpu|huge"), ("--seeds", "int"),
-               ("--out", "out"), ("--resume", "run"),
-               ("--ablation", "none|no_sharing|per_limb|magic"), ("--set", "set"),
-               ("--set", "set"), ("--no-progress", None), ("--coordinator", "127.0.0.1:1|x"),
-               ("--num-processes", "int"), ("--process-id", "int"),
-               ("--local-processes", "auto|1|2|3|x"))
+               ("--out", "out"), ("--resume", "run"), ("--ablation",
+                                                       "none|no_sharing|per_limb|magic"),
+               ("--set", "set"), ("--set", "set"), ("--no-progress", None), ("--coordinator",
+                                                                             "127.0.0.1:1|x"),
+               ("--num-processes", "int"), ("--process-id", "int"), ("--local-processes",
+                                                                     "auto|1|2|3|x"))
 ENTRIES: dict[str, tuple[Callable, tuple, tuple]] = {
     "bipedal": (bipedal.main, TRAIN_FLAGS, ("--preset",)),
     "armswing": (armswing.main, TRAIN_FLAGS, ("--preset",)),
-    "evaluate": (evaluate.main, (
-        ("--run", "run"), ("--episodes", "int"), ("--seconds", "float"),
-        ("--command-vx", "float"), ("--no-dr", None), ("--no-push", None),
-        ("--push-interval", "float"), ("--iteration", "int"), ("--friction", "float2"),
-        ("--seed", "int"), ("--tracking", None)), ("--run",)),
-    "export": (export.main, (
-        ("--run", "run"), ("--out", "file"), ("--seed", "int"), ("--check", "int"),
-        ("--tolerance", "float")), ("--run",)),
-    "sim2sim": (sim2sim.main, (
-        ("--run", "run"), ("--episodes", "int"), ("--seconds", "float"), ("--command-vx", "float"),
-        ("--sim-dt", "float"), ("--iterations", "int"), ("--seed", "int"), ("--onnx", "file"),
-        ("--video", "mp4"), ("--video-seconds", "float"), ("--viewer", None), ("--no-mjx", None),
-        ("--mjx-episodes", "int"), ("--mjx-dr", None)), ("--run",)),
-    "compare": (compare.main, (
-        ("--task", "bipedal|armswing|swim"), ("--seeds", "int"), ("--preset", "smoke|cpu|huge"),
-        ("--out", "out"), ("--episodes", "int"), ("--eval-seconds", "float"), ("--set", "set"),
-        ("--learning-rates", "1e-3,3e-4|3e-4|1e-3|nan,1e-3"), ("--seeds-at-once", "int"),
-        ("--no-progress", None)),
-        ("--preset",)),
-    "benchmark": (benchmark.main, (
-        ("--quick", None), ("--batch", "int"), ("--task", "bipedal|armswing|swim"),
-        ("--out", "out"), ("--sweep", "batch|physics|other"), ("--breakdown", None),
-        ("--batches", "64,256|64|0,-1"), ("--stages", "env,mash|physics|env,brax"),
-        ("--dir", "out")), ()),
+    "evaluate": (evaluate.main, (("--run", "run"), ("--episodes", "int"), ("--seconds", "float"),
+                                 ("--command-vx", "float"), ("--no-dr", None), ("--no-push", None),
+                                 ("--push-interval", "float"), ("--iteration", "int"),
+                                 ("--friction", "float2"), ("--seed", "int"), ("--tracking", None)),
+                 ("--run",)),
+    "export": (export.main, (("--run", "run"), ("--out", "file"), ("--seed", "int"),
+                             ("--check", "int"), ("--tolerance", "float")), ("--run",)),
+    "sim2sim":
+        (sim2sim.main,
+         (("--run", "run"), ("--episodes", "int"), ("--seconds", "float"),
+          ("--command-vx", "float"), ("--sim-dt", "float"), ("--iterations", "int"),
+          ("--seed", "int"), ("--onnx", "file"), ("--video", "mp4"), ("--video-seconds", "float"),
+          ("--viewer", None), ("--no-mjx", None), ("--mjx-episodes", "int"), ("--mjx-dr",
+                                                                              None)), ("--run",)),
+    "compare":
+        (compare.main,
+         (("--task", "bipedal|armswing|swim"), ("--seeds", "int"), ("--preset", "smoke|cpu|huge"),
+          ("--out", "out"), ("--episodes", "int"), ("--eval-seconds", "float"), ("--set", "set"),
+          ("--learning-rates", "1e-3,3e-4|3e-4|1e-3|nan,1e-3"), ("--seeds-at-once", "int"),
+          ("--no-progress", None)), ("--preset",)),
+    "benchmark":
+        (benchmark.main,
+         (("--quick", None), ("--batch", "int"), ("--task", "bipedal|armswing|swim"),
+          ("--out", "out"), ("--sweep", "batch|physics|other"), ("--breakdown", None),
+          ("--batches", "64,256|64|0,-1"), ("--stages", "env,mash|physics|env,brax"), ("--dir",
+                                                                                       "out")), ()),
     # With a display (set for these cases) play opens the viewer, whose stand-in starts it.
-    "play": (play.main, (
-        ("--policy", "policy"), ("--command", "0.4|0.3,0,0.5|-0.2,0.1|fast"), ("--stand", None),
-        ("--seconds", "float"), ("--video", "mp4"), ("--phase", "float")), ("--policy",)),
+    "play": (play.main, (("--policy", "policy"), ("--command", "0.4|0.3,0,0.5|-0.2,0.1|fast"),
+                         ("--stand", None), ("--seconds", "float"), ("--video", "mp4"),
+                         ("--phase", "float")), ("--policy",)),
     # The hidden worker flags are the launcher's own; --worker runs a worker outright.
-    "benchmark_devices": (benchmark_devices.main, (
-        ("--batch", "int"), ("--steps", "int"), ("--repeats", "int"),
-        ("--task", "bipedal|armswing|swim"), ("--train", None), ("--train-batch", "int"),
-        ("--platform", "cpu|gpu|tpu|nope"), ("--out", "out"), ("--process-id", "int"),
-        ("--num-processes", "int"), ("--coordinator", "127.0.0.1:1|x"),
-        ("--sync-dir", "out"), ("--result", "file")), ()),
+    "benchmark_devices":
+        (benchmark_devices.main,
+         (("--batch", "int"), ("--steps", "int"), ("--repeats", "int"),
+          ("--task", "bipedal|armswing|swim"), ("--train", None), ("--train-batch", "int"),
+          ("--platform", "cpu|gpu|tpu|nope"), ("--out", "out"), ("--process-id",
+                                                                 "int"), ("--num-processes", "int"),
+          ("--coordinator", "127.0.0.1:1|x"), ("--sync-dir", "out"), ("--result", "file")), ()),
 }
 
 
@@ -206,25 +245,25 @@ def test_every_entry_point_starts_cleanly_or_says_one_error_line(places, tmp_pat
                "DISPLAY", "WAYLAND_DISPLAY"):
     monkeypatch.delenv(name, raising=False)
   import subprocess
+
+  from mash.analysis import reports
   from mash.bench import benchmark as bench
   from mash.bench import devices as bench_devices
   from mash.bench import sweeps
-  from mash.rl import distributed
-  from mash.sim import env as env_lib
   from mash.deploy import policy
-  from mash.analysis import reports
-  from mash.runs import launch
-  from mash.runs import loop as runs
   from mash.deploy import sim2sim as sim2sim_lib
   from mash.deploy import video as video_lib
+  from mash.rl import distributed
+  from mash.runs import launch
+  from mash.runs import loop as runs
+  from mash.sim import env as env_lib
   for owner, attr in ((runs, "train"), (policy, "load"), (policy, "load_all"),
                       (launch, "run_local_processes"), (distributed, "initialize"),
                       (reports, "evaluate_run"), (reports, "tracking_run"),
-                      (sim2sim_lib, "resolve_onnx"), (subprocess, "call"),
-                      (bench, "run_benchmark"), (sweeps, "sweep_batch"),
-                      (sweeps, "sweep_physics"), (env_lib, "MashEnv"),
-                      (bench_devices, "run_scaling"), (bench_devices, "run_worker"),
-                      (sim2sim_lib, "interactive")):
+                      (sim2sim_lib, "resolve_onnx"), (subprocess, "call"), (bench, "run_benchmark"),
+                      (sweeps, "sweep_batch"), (sweeps, "sweep_physics"), (env_lib, "MashEnv"),
+                      (bench_devices, "run_scaling"), (bench_devices,
+                                                       "run_worker"), (sim2sim_lib, "interactive")):
     monkeypatch.setattr(owner, attr, _started)
   monkeypatch.setattr(video_lib, "headless_gl", lambda: (None, "no OpenGL in this test"))
   monkeypatch.setattr(sys, "argv", ["fuzz"])
@@ -245,7 +284,7 @@ def test_every_entry_point_starts_cleanly_or_says_one_error_line(places, tmp_pat
   with capsys.disabled():
     print(f"\ncommand-line fuzz: {total} cases")
     for entry, tally in counts.items():
-      print(f"  {entry}: {sum(tally.values())} cases, " + ", ".join(
-          f"{n} {k}" for k, n in tally.items()))
+      print(f"  {entry}: {sum(tally.values())} cases, " +
+            ", ".join(f"{n} {k}" for k, n in tally.items()))
   assert total >= 300
   assert not bad, f"{len(bad)} of {total} cases ended badly:\n\n" + "\n\n".join(bad[:15])

@@ -30,14 +30,14 @@ from typing import Any, Iterator
 import jax
 import pytest
 
-from mash.sim import env as env_lib
 from mash.analysis import evaluation
-from mash.runs import experiment
-from mash.sim import robots
 from mash.deploy import sim2sim
 from mash.rl import mappo
 from mash.rl import trainer as trainer_lib
+from mash.runs import experiment
+from mash.sim import env as env_lib
 from mash.sim import model as model_lib
+from mash.sim import robots
 
 REPO = Path(__file__).resolve().parents[1]
 BAD = ("nan", "inf", "0", "-1", "huge")
@@ -120,8 +120,10 @@ def cached_models():
     return real(robots.load(name), physics, full_collision)
 
   with pytest.MonkeyPatch.context() as mp:
-    mp.setattr(model_lib, "build_model", lambda spec, physics=model_lib.PhysicsConfig(),
-               full_collision=False: build(spec.name, physics, full_collision))
+    mp.setattr(
+        model_lib, "build_model",
+        lambda spec, physics=model_lib.PhysicsConfig(), full_collision=False: build(
+            spec.name, physics, full_collision))
     yield
 
 
@@ -184,8 +186,10 @@ def _walk_settings(fields, default, check, start) -> list[str]:
   accepted = []
   for path, kind, length, current in fields:
     for which, bad in enumerate(BAD):
-      value = {"nan": math.nan, "inf": math.inf, "0": 0, "-1": -1,
-               "huge": 10**12 if kind is int else 1e300}[bad]
+      value = {
+          "nan": math.nan, "inf": math.inf, "0": 0, "-1": -1,
+          "huge": 10**12 if kind is int else 1e300
+      }[bad]
       if _is_tuple(current, length):
         elements = list(current if current is not None else (1.0,) * length)
         elements[which % len(elements)] = value
@@ -203,6 +207,7 @@ def _walk_settings(fields, default, check, start) -> list[str]:
 
 
 def test_every_evaluation_number_is_refused_in_one_line_or_starts(smoke_env):
+
   def start(settings):  # the env an evaluation builds
     env_lib.MashEnv(evaluation.eval_env_config(SMOKE.env, settings))
 
@@ -211,9 +216,10 @@ def test_every_evaluation_number_is_refused_in_one_line_or_starts(smoke_env):
 
 
 def test_every_sim2sim_number_is_refused_in_one_line_or_starts(cached_models):
+
   def start(settings):  # the MuJoCo C model sim2sim steps
     model_lib.build_model(robots.load(SMOKE.env.robot), sim2sim.physics(settings),
-                       full_collision=settings.full_collision)
+                          full_collision=settings.full_collision)
 
   accepted = _walk_settings(SIM2SIM_FIELDS, sim2sim.Sim2SimConfig(), sim2sim.check_config, start)
   assert not any(a.startswith(("sim_dt=", "iterations=", "ls_iterations=")) for a in accepted)
@@ -240,9 +246,10 @@ def test_bad_numbers_on_the_command_line_are_one_line_and_exit_2(override, words
   out = tmp_path / "run"
   path = os.environ.get("PYTHONPATH", "")
   env = dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{path}" if path else str(REPO))
-  result = subprocess.run([sys.executable, "-m", "experiments.bipedal", "--preset", "smoke",
-                           "--set", override, "--out", str(out)], capture_output=True, text=True,
-                          cwd=tmp_path, env=env, timeout=120)
+  result = subprocess.run([
+      sys.executable, "-m", "experiments.bipedal", "--preset", "smoke", "--set", override, "--out",
+      str(out)
+  ], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120)
   lines = [l for l in result.stderr.splitlines() if l.strip() and "warp" not in l]
   assert result.returncode == 2 and lines == [f"error: {words}"], result.stderr
   assert not out.exists()

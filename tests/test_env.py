@@ -18,20 +18,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mash.sim import env as env_lib
 from mash.analysis import evaluation
-from mash.sim import randomize
-from mash.sim import rewards
-from mash.sim import robots
-from mash.sim import env_config
-from mash.sim import geometry
+from mash.sim import env as env_lib
+from mash.sim import env_config, geometry, randomize, rewards, robots
 
 T1 = robots.load("booster_t1")
 DR_OFF = randomize.DomainRandConfig(enabled=False)
-EPISODE_LENGTH = 50   # control steps of the DR-on env (1 s), so a 200-step rollout sees time-outs
-RANDOM_STEPS = 200    # random-action rollout (DR on)
-STAND_STEPS = 100     # 2 s at 50 Hz (DR off)
-SHARED = 3 + 3 + 4    # euler, angular velocity, command
+EPISODE_LENGTH = 50  # control steps of the DR-on env (1 s), so a 200-step rollout sees time-outs
+RANDOM_STEPS = 200  # random-action rollout (DR on)
+STAND_STEPS = 100  # 2 s at 50 Hz (DR off)
+SHARED = 3 + 3 + 4  # euler, angular velocity, command
 
 
 # ------------------------------------------------------------------------------------- fixtures
@@ -45,15 +41,13 @@ def _make_simulate(env):
     def body(state, action):
       state = step(state, action)
       qpos = state.pipeline_state.qpos
-      trace = dict(
-          qpos=qpos, qvel=state.pipeline_state.qvel, z=qpos[:, 2],
-          euler=jax.vmap(geometry.quat_to_euler)(qpos[:, 3:7]), done=state.done,
-          reward=state.reward, metrics=state.metrics, step=state.info["step"],
-          env_steps=state.info["env_steps"],
-          truncation=state.info["truncation"], fall=state.info["fall"],
-          torque=state.info["last_torque"], ctrl=state.pipeline_state.ctrl,
-          next_critic_obs=state.info["next_critic_obs"],
-          push=state.info["push"], obs=state.obs)
+      trace = dict(qpos=qpos, qvel=state.pipeline_state.qvel, z=qpos[:, 2], euler=jax.vmap(
+          geometry.quat_to_euler)(qpos[:, 3:7]), done=state.done, reward=state.reward,
+                   metrics=state.metrics, step=state.info["step"],
+                   env_steps=state.info["env_steps"], truncation=state.info["truncation"],
+                   fall=state.info["fall"], torque=state.info["last_torque"],
+                   ctrl=state.pipeline_state.ctrl, next_critic_obs=state.info["next_critic_obs"],
+                   push=state.info["push"], obs=state.obs)
       return state, trace
 
     last, trace = jax.lax.scan(body, state0, actions)
@@ -103,10 +97,12 @@ def standing_rollout(nominal_env):
 # -------------------------------------------------------------------------------------- helpers
 def _to_numpy(tree):
   """Device arrays -> numpy (typed PRNG keys -> their raw key data)."""
+
   def conv(x):
     if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
       x = jax.random.key_data(x)
     return np.asarray(x)
+
   return jax.tree.map(conv, tree)
 
 
@@ -140,8 +136,8 @@ def _random_inputs(env, seed, phase=0.3, standing=0.0):
   nj = env.n_joints
   q_default = np.array([T1.default_pose[j] for j in T1.joints])
   sensors = dict(q=q_default + rng.normal(0, 0.2, nj), dq=rng.normal(0, 1.0, nj),
-                 euler=rng.normal(0, 0.1, 3), ang_vel=rng.normal(0, 0.5, 3),
-                 lin_vel=rng.normal(0, 0.5, 3))
+                 euler=rng.normal(0, 0.1, 3), ang_vel=rng.normal(0, 0.5,
+                                                                 3), lin_vel=rng.normal(0, 0.5, 3))
   command = np.array([standing, *(rng.uniform(-0.5, 0.5, 3) * (1.0 - standing))])
   info = dict(command=command, phase=np.asarray(phase),
               last_action=rng.uniform(-1, 1, env.action_size),
@@ -150,10 +146,12 @@ def _random_inputs(env, seed, phase=0.3, standing=0.0):
 
 
 def _observe(env, sensors, info, contact):
-  return jax.tree.map(np.asarray, env.observe(
-      {k: jnp.asarray(v, jnp.float32) for k, v in sensors.items()},
-      {k: (jnp.asarray(v, jnp.float32) if isinstance(v, np.ndarray) else v)
-       for k, v in info.items()}, jnp.asarray(contact, jnp.float32)))
+  return jax.tree.map(
+      np.asarray,
+      env.observe({k: jnp.asarray(v, jnp.float32) for k, v in sensors.items()}, {
+          k: (jnp.asarray(v, jnp.float32) if isinstance(v, np.ndarray) else v)
+          for k, v in info.items()
+      }, jnp.asarray(contact, jnp.float32)))
 
 
 def _mirror_inputs(env, sensors, info):
@@ -164,8 +162,8 @@ def _mirror_inputs(env, sensors, info):
            euler=sensors["euler"] * flip_xz, ang_vel=sensors["ang_vel"] * flip_xz,
            lin_vel=sensors["lin_vel"] * np.array([1.0, -1.0, 1.0]))
   i = dict(info, command=info["command"] * np.array([1.0, 1.0, -1.0, -1.0]),
-           phase=np.mod(info["phase"] + 0.5, 1.0),
-           last_action=_mirror(info["last_action"], _controlled_joints(env)))
+           phase=np.mod(info["phase"] + 0.5,
+                        1.0), last_action=_mirror(info["last_action"], _controlled_joints(env)))
   return s, i
 
 
@@ -183,9 +181,9 @@ def test_pd_torque_clips_at_limits():
   """Large target errors (either sign) and large velocities saturate at +-tau_max, no further."""
   tau_max = jnp.array([45.0, 30.0, 60.0, 20.0])
   tau = env_lib.pd_torque(q_target=jnp.array([10.0, -10.0, 0.0, 0.3]), q=jnp.zeros(4),
-                          dq=jnp.array([0.0, 0.0, -100.0, 0.0]),
-                          kp=jnp.array([150.0, 150.0, 200.0, 150.0]), kd=jnp.array([3.0] * 4),
-                          tau_max=tau_max)
+                          dq=jnp.array([0.0, 0.0, -100.0,
+                                        0.0]), kp=jnp.array([150.0, 150.0, 200.0, 150.0]),
+                          kd=jnp.array([3.0] * 4), tau_max=tau_max)
   # 1500 -> 45;  -1500 -> -30;  -3*(-100) = 300 -> 60;  150*0.3 = 45 -> 20.
   chex.assert_trees_all_close(tau, jnp.array([45.0, -30.0, 60.0, 20.0]))
   # Just under the limit: not clipped. 150*0.1 = 15 < 20.
@@ -233,15 +231,17 @@ def test_actor_history_stacks_the_last_steps_newest_first():
   assert env.observation_size == {"legs": (2, 96), "critic": (106,)}
   assert env.frame_dims == {"legs": 32}
   assert env_lib.make_env("bipedal", "ppo", actor_history=3).observation_size["body"] == (1, 150)
-  frames = [{"legs": np.full((2, 32), float(t)) + np.arange(2)[:, None] * 10,
-             "critic": np.full((106,), float(t))} for t in range(4)]
+  frames = [{
+      "legs": np.full((2, 32), float(t)) + np.arange(2)[:, None] * 10, "critic": np.full((106,),
+                                                                                         float(t))
+  } for t in range(4)]
   obs = jax.tree.map(np.asarray, env.with_history(frames[0], None))
   np.testing.assert_array_equal(obs["legs"], np.tile(frames[0]["legs"], (1, 3)))
   for t in (1, 2, 3):
     obs = jax.tree.map(np.asarray, env.with_history(frames[t], obs))
   # Newest first: steps 3, 2, 1 (step 0 has dropped out); each agent keeps its own rows.
-  np.testing.assert_array_equal(
-      obs["legs"], np.concatenate([frames[t]["legs"] for t in (3, 2, 1)], axis=-1))
+  np.testing.assert_array_equal(obs["legs"],
+                                np.concatenate([frames[t]["legs"] for t in (3, 2, 1)], axis=-1))
   np.testing.assert_array_equal(obs["critic"], frames[3]["critic"])
   with pytest.raises(export.ExportError, match="actor_history=3"):
     export.layout(env)
@@ -267,9 +267,11 @@ def test_leg_observation_layout(dr_env):
   for k, (offset, one_hot) in enumerate([(0.0, [1, 0]), (0.5, [0, 1])]):  # left, right
     idx = slice(6 * k, 6 * k + 6)  # legs are joints 0..5 (left), 6..11 (right)
     angle = 2 * np.pi * (0.3 + offset)
-    expected = np.concatenate([q_rel[idx], sensors["dq"][idx], info["last_action"][idx],
-                               [np.sin(angle), np.cos(angle)], sensors["euler"],
-                               sensors["ang_vel"], info["command"], one_hot])
+    expected = np.concatenate([
+        q_rel[idx], sensors["dq"][idx], info["last_action"][idx], [np.sin(angle),
+                                                                   np.cos(angle)], sensors["euler"],
+        sensors["ang_vel"], info["command"], one_hot
+    ])
     np.testing.assert_allclose(obs[k], expected, rtol=1e-5, atol=1e-5)
 
 
@@ -282,15 +284,19 @@ def test_arm_and_ppo_observation_layout(armswing_env):
   for k, (offset, one_hot) in enumerate([(0.5, [1, 0]), (0.0, [0, 1])]):  # arm opposite its leg
     idx = slice(12 + 4 * k, 16 + 4 * k)
     angle = 2 * np.pi * (0.1 + offset)
-    expected = np.concatenate([q_rel[idx], sensors["dq"][idx], info["last_action"][idx],
-                               [np.sin(angle), np.cos(angle)], shared, one_hot])
+    expected = np.concatenate([
+        q_rel[idx], sensors["dq"][idx], info["last_action"][idx], [np.sin(angle),
+                                                                   np.cos(angle)], shared, one_hot
+    ])
     np.testing.assert_allclose(arms[k], expected, rtol=1e-5, atol=1e-5)
 
   ppo = env_lib.make_env("armswing", "ppo")
   body = _observe(ppo, sensors, info, contact)["body"][0]
   angles = 2 * np.pi * (0.1 + np.array([0.0, 0.5, 0.5, 0.0]))  # left/right leg, left/right arm
-  expected = np.concatenate([q_rel, sensors["dq"], info["last_action"],
-                             np.stack([np.sin(angles), np.cos(angles)], -1).reshape(-1), shared])
+  expected = np.concatenate([
+      q_rel, sensors["dq"], info["last_action"],
+      np.stack([np.sin(angles), np.cos(angles)], -1).reshape(-1), shared
+  ])
   np.testing.assert_allclose(body, expected, rtol=1e-5, atol=1e-5)
 
 
@@ -298,19 +304,29 @@ def test_critic_observation_layout(dr_env):
   """Critic: q_rel 20 | dq 20 | prev action 20 | q_rel - q_ref 20 | phase 2 | command 4 | v 3 |
   euler 3 | w 3 | push 5 | friction | mass offset | stance 2 | contact 2 (= 106)."""
   sensors, info, contact = _random_inputs(dr_env, seed=3, phase=0.3)
-  info["dr"] = info["dr"].replace(friction=jnp.asarray(0.7),
-                                  mass_scale=jnp.full((dr_env.mj_model.nbody,), 1.1))
+  info["dr"] = info["dr"].replace(friction=jnp.asarray(0.7), mass_scale=jnp.full(
+      (dr_env.mj_model.nbody,), 1.1))
   c = _observe(dr_env, sensors, info, contact)["critic"]
   q_rel = sensors["q"] - np.array([T1.default_pose[j] for j in T1.joints])
   q_ref, stance = map(np.asarray, dr_env.gait(jnp.asarray(0.3), jnp.asarray(0.0)))
   last_full = np.zeros(20)
   last_full[:12] = info["last_action"]
   expected = np.concatenate([
-      q_rel, sensors["dq"], last_full, q_rel - q_ref,
-      [np.sin(2 * np.pi * 0.3), np.cos(2 * np.pi * 0.3)], info["command"], sensors["lin_vel"],
-      sensors["euler"], sensors["ang_vel"], info["push"], [0.7],
+      q_rel,
+      sensors["dq"],
+      last_full,
+      q_rel - q_ref,
+      [np.sin(2 * np.pi * 0.3), np.cos(2 * np.pi * 0.3)],
+      info["command"],
+      sensors["lin_vel"],
+      sensors["euler"],
+      sensors["ang_vel"],
+      info["push"],
+      [0.7],
       [0.1 * dr_env.mj_model.body_mass.sum()],  # mass offset from nominal: 10 % of 31.6 kg
-      stance, contact])
+      stance,
+      contact
+  ])
   np.testing.assert_allclose(c, expected, rtol=1e-4, atol=1e-4)
   # Phase 0.3: left leg sin(0.6 pi) > 0 is in swing, right leg sin(1.6 pi) < 0 in stance.
   np.testing.assert_array_equal(stance, [0.0, 1.0])
@@ -329,8 +345,7 @@ def test_critic_sees_the_kick_and_the_actors_do_not(dr_env):
   plain = _observe(dr_env, sensors, info, contact)
   obs = _observe(kicked, sensors, dict(info, kick=np.array([0.3, -0.4, 0.2])), contact)
   lay = kicked.layout.critic
-  assert lay.size == dr_env.layout.critic.size + 3 and lay.offset("kick") == lay.offset(
-      "push") + 5
+  assert lay.size == dr_env.layout.critic.size + 3 and lay.offset("kick") == lay.offset("push") + 5
   np.testing.assert_allclose(obs["critic"][lay.slice("kick")], [0.3, -0.4, 0.2], rtol=1e-6)
   no_kick = np.delete(obs["critic"], np.arange(lay.offset("kick"), lay.offset("kick") + 3))
   np.testing.assert_allclose(no_kick, plain["critic"], rtol=1e-6)
@@ -343,8 +358,9 @@ def test_sample_kick_sizes_directions_and_yaw():
   """4096 kicks of 0.2-1.0 m/s and 0.1-0.3 rad/s: every size in range, the direction uniform in
   the plane (each quadrant about a quarter, mean direction about 0), the yaw sign both ways."""
   cfg = randomize.DomainRandConfig(kick_velocity=(0.2, 1.0), kick_yaw_rate=(0.1, 0.3))
-  kicks = np.asarray(jax.jit(jax.vmap(lambda k: randomize.sample_kick(k, cfg)))(
-      jax.random.split(jax.random.key(0), 4096)))
+  kicks = np.asarray(
+      jax.jit(jax.vmap(lambda k: randomize.sample_kick(k, cfg)))(jax.random.split(
+          jax.random.key(0), 4096)))
   assert kicks.shape == (4096, randomize.KICK_SIZE)
   size = np.linalg.norm(kicks[:, :2], axis=1)
   assert size.min() >= 0.2 - 1e-6 and size.max() <= 1.0 + 1e-6
@@ -365,8 +381,8 @@ def test_kick_interval_steps_hand_values():
     cfg = randomize.DomainRandConfig(kick_interval_s=interval)
     assert int(randomize.kick_interval_steps(key, cfg, 0.02)) == steps, interval
   cfg = randomize.DomainRandConfig(kick_interval_s=(5.0, 10.0))
-  drawn = np.asarray(jax.vmap(lambda k: randomize.kick_interval_steps(k, cfg, 0.02))(
-      jax.random.split(key, 512)))
+  drawn = np.asarray(
+      jax.vmap(lambda k: randomize.kick_interval_steps(k, cfg, 0.02))(jax.random.split(key, 512)))
   assert drawn.min() >= 250 and drawn.max() <= 500 and drawn.std() > 50
 
 
@@ -430,7 +446,8 @@ def test_gait_reference_and_stance(dr_env):
 RANGES = {  # DomainParams field -> DomainRandConfig field
     "friction": "friction", "mass_scale": "mass_scale", "com_offset": "com_offset",
     "gravity": "gravity", "joint_damping": "joint_damping", "joint_friction": "joint_friction",
-    "armature": "armature", "kp_scale": "kp_scale", "kd_scale": "kd_scale"}
+    "armature": "armature", "kp_scale": "kp_scale", "kd_scale": "kd_scale"
+}
 
 
 def test_reference_swing_reaches_the_clearance_height(dr_env):
@@ -491,8 +508,8 @@ def test_randomize_sample_in_ranges_and_varies():
   """vmapped sample over 256 keys: every draw inside its configured range, different across envs."""
   cfg = randomize.DomainRandConfig()
   n, nbody, nj = 256, 25, 20
-  params = jax.jit(jax.vmap(lambda k: randomize.sample(k, cfg, nbody, nj)))(
-      jax.random.split(jax.random.key(0), n))
+  params = jax.jit(jax.vmap(lambda k: randomize.sample(k, cfg, nbody, nj)))(jax.random.split(
+      jax.random.key(0), n))
   assert set(RANGES) | {"motor_strength"} == {f for f in params.__dataclass_fields__}
   np.testing.assert_array_equal(params.motor_strength, 1.0)  # weak motors: the battery's only
   for field, cfg_field in RANGES.items():
@@ -511,16 +528,16 @@ def test_friction_curriculum_range_hand_values():
   then holds; off (None start or 0 steps) it is the final range; evaluation never ramps."""
   cfg = randomize.DomainRandConfig(friction=(0.1, 1.2), friction_initial=(0.3, 0.5),
                                    friction_ramp_steps=1000)
-  for steps, want in ((0, (0.3, 0.5)), (250, (0.25, 0.675)), (1000, (0.1, 1.2)),
-                      (5000, (0.1, 1.2))):
+  for steps, want in ((0, (0.3, 0.5)), (250, (0.25, 0.675)), (1000, (0.1, 1.2)), (5000, (0.1,
+                                                                                         1.2))):
     np.testing.assert_allclose(randomize.friction_range(cfg, jnp.int32(steps)), want, rtol=1e-6)
   assert randomize.friction_range(cfg, None) == (0.1, 1.2)
   off = (dataclasses.replace(cfg, friction_ramp_steps=0),
          dataclasses.replace(cfg, friction_initial=None))
   assert all(randomize.friction_range(c, jnp.int32(0)) == (0.1, 1.2) for c in off)
   env_cfg = env_config.EnvConfig(randomization=cfg)
-  assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
-                                    ).randomization.friction_ramp_steps == 0
+  assert evaluation.eval_env_config(env_cfg,
+                                    evaluation.EvalConfig()).randomization.friction_ramp_steps == 0
 
 
 def test_slippery_share_draws_that_share_of_floors_from_its_range():
@@ -538,8 +555,9 @@ def test_slippery_share_draws_that_share_of_floors_from_its_range():
   for field in ("mass_scale", "com_offset", "armature", "kp_scale"):
     np.testing.assert_array_equal(getattr(mixed, field), getattr(plain, field))
   env_cfg = env_config.EnvConfig(randomization=randomize.DomainRandConfig(slippery_share=0.25))
-  assert evaluation.eval_env_config(env_cfg, evaluation.EvalConfig()
-                                    ).randomization.slippery_share == 0.0
+  assert evaluation.eval_env_config(env_cfg,
+                                    evaluation.EvalConfig()).randomization.slippery_share == 0.0
+
 
 def test_friction_curriculum_follows_each_env_slot_through_resets():
   """Fresh episodes (every auto-reset, and a reset told the clock) draw the floor friction from
@@ -569,8 +587,8 @@ def test_friction_curriculum_follows_each_env_slot_through_resets():
 
 def test_randomize_disabled_is_nominal():
   """enabled=False: every key gives the nominal robot (friction 1, scales 1, g 9.81, ...)."""
-  params = jax.vmap(lambda k: randomize.sample(k, DR_OFF, 25, 20))(
-      jax.random.split(jax.random.key(0), 3))
+  params = jax.vmap(lambda k: randomize.sample(k, DR_OFF, 25, 20))(jax.random.split(
+      jax.random.key(0), 3))
   nominal = randomize.nominal(25, 20)
   for i in range(3):
     chex.assert_trees_all_close(jax.tree.map(lambda x: x[i], params), nominal)
@@ -581,16 +599,19 @@ def test_randomize_disabled_is_nominal():
 def test_randomize_apply_writes_fields(dr_env):
   """apply: body_mass/inertia scaled, gravity set, sole-floor pair_friction set, torso CoM moved,
   joint damping/frictionloss/armature written at the actuated dofs; nothing else touched."""
-  params = randomize.sample(jax.random.key(3), dr_env.config.randomization,
-                            dr_env.mj_model.nbody, dr_env.n_joints)
+  params = randomize.sample(jax.random.key(3), dr_env.config.randomization, dr_env.mj_model.nbody,
+                            dr_env.n_joints)
   base, model = dr_env.mjx_model, dr_env.model_for(params)
   m = dr_env.mj_model
   np.testing.assert_allclose(model.body_mass, base.body_mass * params.mass_scale, rtol=1e-6)
   np.testing.assert_allclose(model.body_inertia, base.body_inertia * params.mass_scale[:, None],
                              rtol=1e-6)
   np.testing.assert_allclose(model.opt.gravity, [0.0, 0.0, -float(params.gravity)], rtol=1e-6)
-  soles = np.array([m.pair(f"{s}_sole_{k}_floor").id for s in ("left", "right")
-                    for k in range(len(T1.sole_points[0]))])
+  soles = np.array([
+      m.pair(f"{s}_sole_{k}_floor").id
+      for s in ("left", "right")
+      for k in range(len(T1.sole_points[0]))
+  ])
   others = np.array([i for i in range(m.npair) if i not in soles])
   np.testing.assert_allclose(model.pair_friction[soles, :2], float(params.friction), rtol=1e-6)
   np.testing.assert_allclose(model.pair_friction[soles, 2:], base.pair_friction[soles, 2:])
@@ -612,15 +633,16 @@ def test_reset_state(random_rollout, dr_env):
   chex.assert_shape(state0.obs["legs"], (4, 2, 64))  # 2 steps of 32
   chex.assert_shape(state0.obs["critic"], (4, 106))
   np.testing.assert_array_equal(state0.obs["legs"][..., 32:], state0.obs["legs"][..., :32])
-  np.testing.assert_allclose(state0.pipeline_state.qpos,
-                             np.broadcast_to(dr_env.mj_model.key("home").qpos, (4, dr_env.mj_model.nq)))
+  np.testing.assert_allclose(
+      state0.pipeline_state.qpos,
+      np.broadcast_to(dr_env.mj_model.key("home").qpos, (4, dr_env.mj_model.nq)))
   np.testing.assert_array_equal(state0.info["step"], 0)
   assert set(state0.metrics) == {f"reward/{t}" for t in rewards.TERMS} | {"paper_reward"}
   assert len(np.unique(state0.info["dr"].friction)) == 4
 
 
-def test_torque_noise_is_applied_within_its_range_and_not_rewarded(random_rollout,
-                                                                   standing_rollout, dr_env):
+def test_torque_noise_is_applied_within_its_range_and_not_rewarded(random_rollout, standing_rollout,
+                                                                   dr_env):
   """DR on: the last substep's applied torque is the commanded one plus U[-1, 1] x 2 % of the
   limit (mean |noise| / bound 1/2 over 9,600 draws); the rewards' torque is the commanded one. DR
   off (the nominal robot): applied = commanded exactly."""
@@ -713,7 +735,8 @@ def test_done_and_auto_reset(random_rollout, dr_env):
   np.testing.assert_array_equal(done, np.maximum(trunc, fall))
   assert not np.any((trunc > 0) & (fall > 0))
   np.testing.assert_array_equal(step[done > 0], 0)
-  np.testing.assert_allclose(tr["qpos"][done > 0], np.broadcast_to(home, tr["qpos"][done > 0].shape))
+  np.testing.assert_allclose(tr["qpos"][done > 0], np.broadcast_to(home,
+                                                                   tr["qpos"][done > 0].shape))
   np.testing.assert_array_equal(tr["qvel"][done > 0], 0.0)
   # Step counter: +1 each step, previous counter 49 exactly when truncated.
   prev = np.concatenate([np.zeros((1, 4), step.dtype), step[:-1]], axis=0)
@@ -721,8 +744,8 @@ def test_done_and_auto_reset(random_rollout, dr_env):
   # A fall on the last step counts as a fall, not a time-out.
   np.testing.assert_array_equal(trunc > 0, (done > 0) & (fall == 0) & (prev == EPISODE_LENGTH - 1))
   # The curriculum's clock runs on through resets: step t of the rollout is env step t + 1.
-  np.testing.assert_array_equal(tr["env_steps"],
-                                np.broadcast_to(np.arange(1, RANDOM_STEPS + 1)[:, None], done.shape))
+  np.testing.assert_array_equal(
+      tr["env_steps"], np.broadcast_to(np.arange(1, RANDOM_STEPS + 1)[:, None], done.shape))
   assert step.max() < EPISODE_LENGTH
 
 
@@ -748,10 +771,12 @@ def test_assemble_action_puts_each_agent_on_its_own_joints(armswing_env):
   from mash.sim import agents
   legs = np.array([[100 * k + j for j in range(6)] for k in range(2)], np.float32)
   arms = np.array([[200 + 10 * k + j for j in range(4)] for k in range(2)], np.float32)
-  flat = np.asarray(agents.assemble_action(armswing_env.agent_groups,
-                                           {"legs": jnp.asarray(legs), "arms": jnp.asarray(arms)}))
-  expected = [0, 1, 2, 3, 4, 5, 100, 101, 102, 103, 104, 105,
-              200, 201, 202, 203, 210, 211, 212, 213]
+  flat = np.asarray(
+      agents.assemble_action(armswing_env.agent_groups,
+                             {"legs": jnp.asarray(legs), "arms": jnp.asarray(arms)}))
+  expected = [
+      0, 1, 2, 3, 4, 5, 100, 101, 102, 103, 104, 105, 200, 201, 202, 203, 210, 211, 212, 213
+  ]
   np.testing.assert_array_equal(flat, expected)
   names = _controlled_joints(armswing_env)
   assert names[:6] == list(T1.limbs[0].joints) and names[6:12] == list(T1.limbs[1].joints)

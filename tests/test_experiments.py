@@ -15,19 +15,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mash.sim import env as env_lib
 from mash.runs import experiment
-from mash.sim import rewards
-from mash.sim import robots
 from mash.runs import loop as runs
-from mash.sim import env_config
+from mash.sim import env as env_lib
+from mash.sim import env_config, rewards, robots
 
 
 def _with_robot_numbers(cfg: experiment.ExperimentConfig) -> experiment.ExperimentConfig:
   """``cfg`` with the numbers it leaves to its robot filled in, as the env sees it (a recorded
   config.json from before the robot files holds them explicitly)."""
   return dataclasses.replace(cfg, env=env_config.with_robot_numbers(cfg.env,
-                                                                  robots.load(cfg.env.robot)))
+                                                                    robots.load(cfg.env.robot)))
 
 
 def test_smoke_run_writes_every_file(smoke_run):
@@ -45,8 +43,8 @@ def test_smoke_run_writes_every_file(smoke_run):
     assert f"reward/{term}" in progress, term
   cfg = runs.load_config(smoke_run)
   np.testing.assert_array_equal(progress["iteration"], np.arange(1, cfg.train.num_iterations + 1))
-  np.testing.assert_array_equal(progress["env_steps"],
-                                progress["iteration"] * cfg.train.num_envs * cfg.train.unroll_length)
+  np.testing.assert_array_equal(
+      progress["env_steps"], progress["iteration"] * cfg.train.num_envs * cfg.train.unroll_length)
   summary = json.loads((smoke_run / "summary.json").read_text())
   assert summary["iterations"] == cfg.train.num_iterations and not summary["interrupted"]
 
@@ -66,19 +64,21 @@ def test_config_round_trip(smoke_run):
 
 
 def test_overrides_apply_and_reject():
-  cfg = experiment.make_config("armswing", "ppo", "smoke", overrides=[
-      "train.learning_rate=5e-4", "env.reward_scales.joint_pos=2.0", "env.agent_id=false",
-      "train.actor_hidden=32,16"])
+  cfg = experiment.make_config(
+      "armswing", "ppo", "smoke", overrides=[
+          "train.learning_rate=5e-4", "env.reward_scales.joint_pos=2.0", "env.agent_id=false",
+          "train.actor_hidden=32,16"
+      ])
   assert cfg.train.learning_rate == 5e-4 and cfg.env.reward_scales.joint_pos == 2.0
   assert cfg.env.agent_id is False and cfg.train.actor_hidden == (32, 16)
   assert cfg.env.partition == "ppo"
   # A field that may be None (the friction curriculum's start) parses as its type, and back.
   cfg = experiment.apply_overrides(cfg, ["env.randomization.friction_initial=[0.1,0.3]"])
   assert cfg.env.randomization.friction_initial == (0.1, 0.3)
-  assert experiment.apply_overrides(cfg, ["env.randomization.friction_initial=none"]
-                                    ).env.randomization.friction_initial is None
-  bad = [["train.nope=1"], ["env.randomization.friction_initial=ice"],
-         ["train.learning_rate=fast"], ["learning_rate"], ["env.commands=1"]]
+  assert experiment.apply_overrides(
+      cfg, ["env.randomization.friction_initial=none"]).env.randomization.friction_initial is None
+  bad = [["train.nope=1"], ["env.randomization.friction_initial=ice"], ["train.learning_rate=fast"],
+         ["learning_rate"], ["env.commands=1"]]
   for overrides in bad:
     with pytest.raises(experiment.ConfigError):
       experiment.make_config("bipedal", "mash", "smoke", overrides=overrides)
@@ -98,8 +98,9 @@ def test_gpu_preset_is_the_measured_walking_run():
   assert measured.env.randomization.push_interval_s == 1.0
   preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "gpu"))
   per_step_pushes = dataclasses.replace(measured.env.randomization, push_interval_s=0.0)
-  assert dataclasses.replace(measured, checkpoint_env_state=True, env=dataclasses.replace(
-      measured.env, randomization=per_step_pushes)) == preset
+  assert dataclasses.replace(measured, checkpoint_env_state=True,
+                             env=dataclasses.replace(measured.env,
+                                                     randomization=per_step_pushes)) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 16_000
   assert preset.train.init_log_std == 0.0
 
@@ -196,8 +197,10 @@ def test_metrics_up_to_the_fall_weigh_every_long_enough_episode():
   first = metrics_lib.action_smoothness(traj["actions"][0])
   fallen = metrics_lib.action_smoothness(traj["actions"][1, :100])
   assert out["S_action"] == pytest.approx((first + fallen) / 2)
-  torso = [metrics_lib.torso_stability(traj["base_height"][0], traj["euler"][0]),
-           metrics_lib.torso_stability(traj["base_height"][1, :100], traj["euler"][1, :100])]
+  torso = [
+      metrics_lib.torso_stability(traj["base_height"][0], traj["euler"][0]),
+      metrics_lib.torso_stability(traj["base_height"][1, :100], traj["euler"][1, :100])
+  ]
   assert out["S_torso"] == pytest.approx(np.mean(torso))
 
 
@@ -207,9 +210,9 @@ def test_evaluate_reports_arm_leg_coordination_when_the_arms_act():
   from mash.analysis import evaluation
   w = 2 * np.pi * np.arange(500) / 32
   hips = np.stack([np.sin(w), -np.sin(w)], -1)[None].repeat(2, 0)
-  traj = dict(actions=np.zeros((2, 500, 20)), base_height=np.ones((2, 500)),
-              euler=np.zeros((2, 500, 3)), hip_pitch=hips, shoulder_pitch=hips[..., ::-1] * 0.3,
-              forward_velocity=np.zeros((2, 500)), alive=np.ones((2, 500)))
+  traj = dict(actions=np.zeros((2, 500, 20)), base_height=np.ones((2, 500)), euler=np.zeros(
+      (2, 500, 3)), hip_pitch=hips, shoulder_pitch=hips[..., ::-1] * 0.3, forward_velocity=np.zeros(
+          (2, 500)), alive=np.ones((2, 500)))
   out = evaluation.evaluate(traj, 0.4, arms_act=True)
   assert out["C_limb_arm_leg"] < 0.05 and out["C_limb"] < 0.05
   assert "C_limb_arm_leg" not in evaluation.evaluate(traj, 0.4)
@@ -259,8 +262,8 @@ def test_evaluation_without_pushes_keeps_the_other_randomization():
       "eval_push_interval_0s_it50"
   # --friction LO HI: only the floor-friction range changes (e.g. the paper's, for a run trained
   # on a narrower one), and the directory says so.
-  narrow = dataclasses.replace(trained, randomization=dataclasses.replace(
-      trained.randomization, friction=(0.1, 0.3)))
+  narrow = dataclasses.replace(
+      trained, randomization=dataclasses.replace(trained.randomization, friction=(0.1, 0.3)))
   paper = evaluation.EvalConfig(push_interval_s=0.0, friction=(0.1, 1.2))
   r = evaluation.eval_env_config(narrow, paper).randomization
   assert r == dataclasses.replace(narrow.randomization, push_interval_s=0.0, friction=(0.1, 1.2))
@@ -310,7 +313,8 @@ def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     (("experiments.bipedal", "--set", "train.learning_rate"), "path=value"),
     (("experiments.bipedal", "--resume", "/nonexistent/run"), "does not exist"),
     (("experiments.evaluate", "--run", "/nonexistent/run"), "does not exist"),
-    (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"), "--push-interval"),
+    (("experiments.evaluate", "--run", "r", "--no-push", "--push-interval", "1"),
+     "--push-interval"),
     (("experiments.evaluate", "--run", "r", "--iteration", "0"), "--iteration"),
     (("experiments.evaluate", "--run", "r", "--seed", "-1"), "--seed"),
     (("experiments.evaluate", "--run", "r", "--tracking", "--command-vx", "0.4"), "--command-vx"),
@@ -344,10 +348,13 @@ def test_compare_report_from_synthetic_results():
   rng = np.random.default_rng(0)
 
   def seeds(base):
-    return {"per_seed": [{"T_conv": base * 100 + i, "S_action": base * 0.1 + 0.01 * i,
-                          "S_action_2nd": base * 0.2, "S_torso": base * 1e-3, "C_limb": base * 0.3,
-                          "fall_rate": 0.0, "forward_speed": 0.3 + rng.normal() * 0.01}
-                         for i in range(3)]}
+    return {
+        "per_seed": [{
+            "T_conv": base * 100 + i, "S_action": base * 0.1 + 0.01 * i, "S_action_2nd": base * 0.2,
+            "S_torso": base * 1e-3, "C_limb": base * 0.3, "fall_rate": 0.0,
+            "forward_speed": 0.3 + rng.normal() * 0.01
+        } for i in range(3)]
+    }
 
   md, data = build_report("bipedal", {"mash": seeds(1.0), "ppo": seeds(2.0)}, "smoke", 3)
   assert "| metric | MASH (ours) | Single-agent PPO (ours) |" in md and "| ~1306 | ~1661 |" in md
@@ -387,8 +394,8 @@ def test_compare_report_from_synthetic_results():
   # T_conv against the threshold common to both methods, one row per smoothing window.
   it = np.arange(1, 101, dtype=float)
   fast, slow = np.minimum(10.0, 0.25 * it), np.minimum(10.0, 0.125 * it)
-  conv = metrics_lib.common_threshold_t_conv({"mash": [fast, fast, fast],
-                                              "ppo": [slow, slow, slow * 0]}, windows=[1, 2, 4])
+  conv = metrics_lib.common_threshold_t_conv(
+      {"mash": [fast, fast, fast], "ppo": [slow, slow, slow * 0]}, windows=[1, 2, 4])
   md, data = build_report("bipedal", both, "smoke", 3, conv)
   assert data["table"]["mash"]["T_conv@1"]["mean"] == pytest.approx(conv["t_conv"]["mash"][1][0])
   assert data["table"]["ppo"]["T_conv@1"]["n"] == 2  # the flat seed never reached it
@@ -429,6 +436,7 @@ def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   """compare's plan per seed: nothing there -> new; a run stopped early -> resume, or restart
   when its checkpoints are not there; trained to the end -> done. Its report pairs the seeds evaluated for both methods."""
   import shutil
+
   from mash.analysis import compare
   from mash.runs import comparison
   smoke_run = evaluated_smoke_run
@@ -495,21 +503,24 @@ def _config_of(command: list[str]) -> str:
 def _stand_ins(monkeypatch, training, evaluation, kept=None):
   """compare's training, evaluation and policy keeping replaced by the given functions."""
   import subprocess as subprocess_lib
+
   from mash.analysis import reports
   from mash.runs import comparison
   monkeypatch.setattr(subprocess_lib, "call", training)
   monkeypatch.setattr(reports, "evaluate_run", evaluation)
-  monkeypatch.setattr(comparison, "keep_policy",
-                      lambda run, seed_dir, seed=0: (kept if kept is not None else []).append(
-                          (run.parent.name + "/" + run.name, seed_dir.name, seed)))
+  monkeypatch.setattr(
+      comparison, "keep_policy", lambda run, seed_dir, seed=0:
+      (kept
+       if kept is not None else []).append((run.parent.name + "/" + run.name, seed_dir.name, seed)))
 
 
 def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, tmp_path,
-                                                         monkeypatch):
+                                                          monkeypatch):
   """compare's whole plan with training and evaluation stood in for: the search trains and
   evaluates each rate's seed 0 in turn, the tie goes to the smaller rate, the other seeds train
   at it and each is evaluated before the next one trains; run again, it does nothing new."""
   import shutil
+
   from experiments import compare
   from mash.analysis import compare as compare_lib
   smoke_run = evaluated_smoke_run
@@ -532,17 +543,21 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
 
   compare_lib.hip_trace(smoke_run)  # a clone's records: the trace, not the trajectories
   _stand_ins(monkeypatch, fake_training, fake_evaluation, kept)
-  argv = ["--preset", "smoke", "--seeds", "2", "--out", str(tmp_path / "cmp"), "--episodes", "4",
-          "--no-progress"]
+  argv = [
+      "--preset", "smoke", "--seeds", "2", "--out",
+      str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"
+  ]
   compare.main(argv)
-  runs_in_order = [f"cmp/{a}/lr{lr}/seed{s}" for a, lr, s in (
-      ("mash", 0.0003, 0), ("mash", 0.001, 0), ("ppo", 0.0003, 0), ("ppo", 0.001, 0),
-      ("mash", 0.0003, 1), ("ppo", 0.0003, 1))]
+  runs_in_order = [
+      f"cmp/{a}/lr{lr}/seed{s}" for a, lr, s in (("mash", 0.0003, 0), ("mash", 0.001, 0),
+                                                 ("ppo", 0.0003, 0), ("ppo", 0.001, 0),
+                                                 ("mash", 0.0003, 1), ("ppo", 0.0003, 1))
+  ]
   assert events == [(what, d) for d in runs_in_order for what in ("train", "eval")]
   tuning = json.loads((tmp_path / "cmp" / "tuning.json").read_text())
   assert tuning["picked"] == {"mash": 3e-4, "ppo": 3e-4}  # equal rewards: the smaller rate
-  assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
-      "seed0", "seed1"]
+  assert json.loads(
+      (tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == ["seed0", "seed1"]
   # Each run kept its policy and its record was compacted (the log gzipped, as committed).
   assert set(kept) == {("/".join(d.split("/")[-2:]), d.split("/")[-1], 0) for d in runs_in_order}
   assert (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv.gz").is_file()
@@ -552,14 +567,14 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   assert events == []
 
 
-def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_path,
-                                                       monkeypatch):
+def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_path, monkeypatch):
   """``--seeds-at-once 2`` with training and evaluation stood in for: after the search, seeds 1
   and 2 of each method train in one call (``--seeds 2``, ``train.seed=1``) and are evaluated
   together, then each gets its ``seed<s>/`` records (its own curve rows, metrics and hip trace)
   and the report pairs seeds 0-2; run again, it does nothing new."""
   import csv
   import shutil
+
   from experiments import compare
   from mash.analysis import compare as compare_lib
   from mash.runs import comparison
@@ -578,10 +593,12 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
       writer = csv.DictWriter(f, fields)
       writer.writeheader()
       for i in range(seeds):
-        writer.writerows({**r, "seed": str(i), "paper_episode_reward":
-                          str(float(r["paper_episode_reward"]) + 100 * i)} for r in rows)
-    events.append(("train", out.relative_to(tmp_path).as_posix(),
-                   command[command.index("--set") + 1], seeds))
+        writer.writerows({
+            **r, "seed": str(i), "paper_episode_reward": str(
+                float(r["paper_episode_reward"]) + 100 * i)
+        } for r in rows)
+    events.append(
+        ("train", out.relative_to(tmp_path).as_posix(), command[command.index("--set") + 1], seeds))
     return 0
 
   def fake_evaluation(run_dir, cfg):  # a group's seed i falls in 0.01 + 0.1 i of the episodes
@@ -600,14 +617,15 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
     events.append(("eval", d.relative_to(tmp_path).as_posix()))
 
   _stand_ins(monkeypatch, fake_training, fake_evaluation, kept)
-  argv = ["--preset", "smoke", "--seeds", "3", "--seeds-at-once", "2", "--out",
-          str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"]
+  argv = [
+      "--preset", "smoke", "--seeds", "3", "--seeds-at-once", "2", "--out",
+      str(tmp_path / "cmp"), "--episodes", "4", "--no-progress"
+  ]
   compare.main(argv)
-  assert events[8:] == [
-      ("train", "cmp/mash/lr0.0003/group_seeds1-2", "train.seed=1", 2),
-      ("eval", "cmp/mash/lr0.0003/group_seeds1-2"),
-      ("train", "cmp/ppo/lr0.0003/group_seeds1-2", "train.seed=1", 2),
-      ("eval", "cmp/ppo/lr0.0003/group_seeds1-2")]
+  assert events[8:] == [("train", "cmp/mash/lr0.0003/group_seeds1-2", "train.seed=1", 2),
+                        ("eval", "cmp/mash/lr0.0003/group_seeds1-2"),
+                        ("train", "cmp/ppo/lr0.0003/group_seeds1-2", "train.seed=1", 2),
+                        ("eval", "cmp/ppo/lr0.0003/group_seeds1-2")]
   mash = tmp_path / "cmp" / "mash" / "lr0.0003"
   base = compare_lib.method_curves(mash / "seed0")[1][0]
   single = json.loads((smoke_run / "eval" / "metrics.json").read_text())
@@ -616,8 +634,7 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
     assert comparison.seed_state(d, 10) == "done"
     summary = json.loads((d / "summary.json").read_text())
     assert summary["group"] == "group_seeds1-2" and summary["group_index"] == s - 1
-    np.testing.assert_allclose(compare_lib.method_curves(d)[1], [base + 100 * (s - 1)],
-                               rtol=1e-6)
+    np.testing.assert_allclose(compare_lib.method_curves(d)[1], [base + 100 * (s - 1)], rtol=1e-6)
     metrics = json.loads((d / "eval" / "metrics.json").read_text())
     assert metrics["fall_rate"] == metrics["per_seed"][0]["fall_rate"] == 0.01 + 0.1 * (s - 1)
     assert len(metrics["per_seed"]) == 1 and (d / "eval" / "hip_trace.npz").is_file()
@@ -626,11 +643,13 @@ def test_compare_trains_seeds_together_and_splits_them(evaluated_smoke_run, tmp_
   assert ("lr0.0003/group_seeds1-2", "seed1", 0) in kept
   assert ("lr0.0003/group_seeds1-2", "seed2", 1) in kept
   assert json.loads((tmp_path / "cmp" / "report.json").read_text())["seeds_paired"] == [
-      "seed0", "seed1", "seed2"]
+      "seed0", "seed1", "seed2"
+  ]
   assert " (group_seeds1-2) |" in (tmp_path / "cmp" / "report.md").read_text()
   events.clear()
   compare.main(argv)
   assert events == []
+
 
 def test_a_continued_comparison_keeps_its_own_config(evaluated_smoke_run, tmp_path, monkeypatch,
                                                      capsys):
@@ -639,12 +658,16 @@ def test_a_continued_comparison_keeps_its_own_config(evaluated_smoke_run, tmp_pa
   would change it, or runs of one method that differ in more than the seed, are refused in one
   line before anything trains."""
   import shutil
+
   from experiments import compare
   from mash.runs import experiment
   out = tmp_path / "cmp"
   (out).mkdir()
-  (out / "tuning.json").write_text(json.dumps({"learning_rates": [1e-3], "seed": 0, "picked": {
-      "mash": 1e-3, "ppo": 1e-3}, "final": {"mash": {"0.001": 1.0}, "ppo": {"0.001": 1.0}}}))
+  (out / "tuning.json").write_text(
+      json.dumps({
+          "learning_rates": [1e-3], "seed": 0, "picked": {"mash": 1e-3, "ppo": 1e-3},
+          "final": {"mash": {"0.001": 1.0}, "ppo": {"0.001": 1.0}}
+      }))
   for algo in ("mash", "ppo"):  # seed 0 trained on an earlier preset: another action scale
     cfg = experiment.make_config("bipedal", algo, "smoke", 1, "none",
                                  ["train.learning_rate=1e-3", "env.action_scale=0.3"])
@@ -664,20 +687,22 @@ def test_a_continued_comparison_keeps_its_own_config(evaluated_smoke_run, tmp_pa
     shutil.copytree(evaluated_smoke_run / "eval", Path(run_dir) / "eval", dirs_exist_ok=True)
 
   _stand_ins(monkeypatch, fake_training, fake_evaluation)
-  argv = ["--seeds", "2", "--learning-rates", "1e-3", "--out", str(out), "--episodes", "3",
-          "--no-progress"]
+  argv = [
+      "--seeds", "2", "--learning-rates", "1e-3", "--out",
+      str(out), "--episodes", "3", "--no-progress"
+  ]
   with pytest.raises(SystemExit) as e:  # today's smoke preset is not the folder's config
     compare.main([*argv, "--preset", "smoke"])
   lines = _stderr_lines(capsys.readouterr().err)
   assert e.value.code == 2 and len(lines) == 1 and "env.action_scale (0.3 -> 0.25)" in lines[0]
   assert commands == []
   compare.main(argv)
-  assert [c[c.index("--out") + 1].split("/cmp/")[1] for c in commands] == [
-      "mash/lr0.001/seed1", "ppo/lr0.001/seed1"]
+  assert [c[c.index("--out") + 1].split("/cmp/")[1] for c in commands
+         ] == ["mash/lr0.001/seed1", "ppo/lr0.001/seed1"]
   for c, algo in zip(commands, ("mash", "ppo")):
     assert c[c.index("--config") + 1] == str(out / algo / "lr0.001" / "seed0" / "config.json")
-    assert "--preset" not in c and [c[i + 1] for i, x in enumerate(c) if x == "--set"] == [
-        "train.seed=1"]
+    assert "--preset" not in c and [c[i + 1] for i, x in enumerate(c) if x == "--set"
+                                   ] == ["train.seed=1"]
     seed1 = json.loads((out / algo / "lr0.001" / "seed1" / "config.json").read_text())
     assert seed1["env"]["action_scale"] == 0.3 and seed1["train"]["seed"] == 1
   # Runs of one method that differ in more than the seed cannot be paired in one report.
@@ -703,8 +728,8 @@ def test_config_file_trains_another_run_on_the_same_recipe(smoke_run, tmp_path):
   (tmp_path / "bad.json").write_text("{")
   with pytest.raises(experiment.ConfigError, match="bad.json"):
     experiment.config_from_file(tmp_path / "bad.json", "bipedal")
-  out = _cli("experiments.bipedal", "--config", str(smoke_run / "config.json"), "--preset",
-                 "smoke", "--out", str(tmp_path / "x"))
+  out = _cli("experiments.bipedal", "--config", str(smoke_run / "config.json"), "--preset", "smoke",
+             "--out", str(tmp_path / "x"))
   assert out.returncode == 2 and "--config gives the whole config; --preset" in out.stderr
   assert not (tmp_path / "x").exists()
 
@@ -736,8 +761,9 @@ def test_expected_duration_line_from_the_timed_calls():
 def test_a_quiet_start():
   """Importing the package prints nothing: no 'Failed to import warp' lines from MJX's probe of
   its optional Warp backend."""
-  out = subprocess.run([sys.executable, "-c", "import mash.sim.env, mash.runs.loop, mash.analysis.evaluation"],
-                       capture_output=True, text=True, timeout=120)
+  out = subprocess.run(
+      [sys.executable, "-c", "import mash.sim.env, mash.runs.loop, mash.analysis.evaluation"],
+      capture_output=True, text=True, timeout=120)
   assert out.returncode == 0 and out.stdout == "" and "warp" not in out.stderr, out
 
 
@@ -746,15 +772,18 @@ def test_wandb_logs_every_row_and_resumes_the_same_run(smoke_config, smoke_train
   """``wandb=true``: every progress row reaches W&B at its iteration, and a resume continues the
   same W&B run (its id kept in the run directory). First through a stand-in that records the
   calls, then through the real library in offline mode, which writes the run's file."""
-  pytest.importorskip("wandb", reason="Weights & Biases is an optional extra: pip install -e "
-                      "'.[wandb]' (the dev extra has it)")
+  pytest.importorskip(
+      "wandb", reason="Weights & Biases is an optional extra: pip install -e "
+      "'.[wandb]' (the dev extra has it)")
   import wandb
+
   from mash.runs import loggers
   from mash.runs import loop as runs
   cfg = dataclasses.replace(smoke_config, wandb=True, checkpoint_every=1)
   calls = []
 
   class FakeRun:
+
     def log(self, data, step):
       calls.append(("log", step, dict(data)))
 

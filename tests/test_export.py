@@ -17,14 +17,13 @@ import numpy as np
 import onnx
 import pytest
 
-from mash.sim import env as env_lib
-from mash.runs import experiment
 from mash.deploy import export
-from mash.rl import networks
-from mash.rl import normalization
-from mash.runs import loop as runs
 from mash.deploy import policy as policy_lib
+from mash.rl import networks, normalization
 from mash.rl.config import TrainConfig
+from mash.runs import experiment
+from mash.runs import loop as runs
+from mash.sim import env as env_lib
 from mash.sim import env_config
 
 TOL = 1e-5
@@ -61,13 +60,17 @@ def random_run(task: str, partition: str = "mash", share_actor: bool = True, see
 
 
 CASES = {
-    "bipedal_mash": dict(task="bipedal"),
-    "armswing_mash": dict(task="armswing"),
-    "armswing_ppo": dict(task="armswing", partition="ppo"),
-    "armswing_per_limb": dict(task="armswing", partition="per_limb"),
+    "bipedal_mash":
+        dict(task="bipedal"),
+    "armswing_mash":
+        dict(task="armswing"),
+    "armswing_ppo":
+        dict(task="armswing", partition="ppo"),
+    "armswing_per_limb":
+        dict(task="armswing", partition="per_limb"),
     # Ablations that change the graph: per-agent actors, no one-hot id, no temporal director.
-    "bipedal_no_sharing_no_id_no_td": dict(task="bipedal", share_actor=False, agent_id=False,
-                                           temporal_director=False),
+    "bipedal_no_sharing_no_id_no_td":
+        dict(task="bipedal", share_actor=False, agent_id=False, temporal_director=False),
 }
 
 
@@ -122,8 +125,8 @@ def test_observation_layout_by_hand():
   lay = export.layout(env)
   assert (lay.width, lay.zero, lay.one) == (72, 70, 71)
   right_leg = lay.obs_index["legs"][1]  # joints 6..11, limb 1
-  expected = ([6, 7, 8, 9, 10, 11] + [26, 27, 28, 29, 30, 31] + [46, 47, 48, 49, 50, 51]
-              + [53, 57] + list(range(60, 70)) + [70, 71])  # one-hot (0, 1): zero, one
+  expected = ([6, 7, 8, 9, 10, 11] + [26, 27, 28, 29, 30, 31] + [46, 47, 48, 49, 50, 51] +
+              [53, 57] + list(range(60, 70)) + [70, 71])  # one-hot (0, 1): zero, one
   assert right_leg.tolist() == expected
   np.testing.assert_allclose(lay.phase_offset, [0.0, 0.5, 0.5, 0.0])  # legs 0/0.5, arms opposite
 

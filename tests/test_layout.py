@@ -18,20 +18,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mash.sim import env as env_lib
-from mash.sim import layout
-from mash.sim import randomize
-from mash.sim import robots
-from mash.sim import tasks
-from mash.sim import env_config
+from mash.sim import env_config, layout, randomize, robots, tasks
 
 T1 = robots.load("booster_t1")
 REPO = Path(__file__).resolve().parents[1]
-CONFIGS = list(itertools.product(tasks.names(), env_config.PARTITIONS, (True, False), (True, False)))
+CONFIGS = list(itertools.product(tasks.names(), env_config.PARTITIONS, (True, False),
+                                 (True, False)))
 
 
 def _config(task="bipedal", partition="mash", agent_id=True, temporal_director=True, **kw):
   return env_config.EnvConfig(task=task, partition=partition, agent_id=agent_id,
-                           temporal_director=temporal_director, **kw)
+                              temporal_director=temporal_director, **kw)
 
 
 def _hand_sizes(task, partition, agent_id):
@@ -80,7 +77,8 @@ def test_actor_history_and_local_critic_sizes():
   """H frames per agent (3 x 32 = 96 per leg); the local critic is every agent's own frame padded
   to the largest: bipedal 2 legs x 32 = 64, armswing 4 x 32 = 128, PPO 1 x 50."""
   assert layout.build(T1, _config(actor_history=3)).observation_size == {
-      "legs": (2, 96), "critic": (106,)}
+      "legs": (2, 96), "critic": (106,)
+  }
   assert layout.build(T1, _config(actor_history=3)).frame_dims == {"legs": 32}
   assert layout.build(T1, _config(critic="local")).critic.size == 64
   assert layout.build(T1, _config("armswing", critic="local")).critic.size == 128
@@ -89,15 +87,14 @@ def test_actor_history_and_local_critic_sizes():
 
 def test_segment_names_and_sizes_by_hand():
   lay = layout.build(T1, _config("armswing"))
-  assert lay.actor["legs"].parts == (
-      ("q", 6), ("dq", 6), ("last_action", 6), ("phase", 2), ("euler", 3), ("ang_vel", 3),
-      ("command", 4), ("agent_id", 2))
+  assert lay.actor["legs"].parts == (("q", 6), ("dq", 6), ("last_action", 6), ("phase", 2),
+                                     ("euler", 3), ("ang_vel", 3), ("command", 4), ("agent_id", 2))
   assert lay.actor["arms"].slice("q") == slice(0, 4)
   assert lay.actor["arms"].offset("agent_id") == 24  # 3 x 4 + 2 + 10
-  assert lay.critic.parts == (
-      ("q_rel", 20), ("dq", 20), ("last_action", 20), ("q_rel_minus_ref", 20), ("phase", 2),
-      ("command", 4), ("lin_vel", 3), ("euler", 3), ("ang_vel", 3), ("push", 5), ("friction", 1),
-      ("mass_offset", 1), ("stance", 2), ("contact", 2))
+  assert lay.critic.parts == (("q_rel", 20), ("dq", 20), ("last_action", 20),
+                              ("q_rel_minus_ref", 20), ("phase", 2), ("command", 4), ("lin_vel", 3),
+                              ("euler", 3), ("ang_vel", 3), ("push", 5), ("friction", 1),
+                              ("mass_offset", 1), ("stance", 2), ("contact", 2))
   assert lay.critic.offset("command") == 82  # 4 x 20 + 2
   assert lay.critic.slice("contact") == slice(104, 106)
   ppo = layout.build(T1, _config("armswing", "ppo", agent_id=True))
@@ -125,8 +122,7 @@ def test_segments_tile_each_observation_without_gaps(critic):
       # Splitting 0..size-1 and joining the pieces gives every index once, in order.
       pieces = segments.split(np.arange(segments.size))
       assert list(pieces) == list(segments.names)
-      np.testing.assert_array_equal(np.concatenate(list(pieces.values())),
-                                    np.arange(segments.size))
+      np.testing.assert_array_equal(np.concatenate(list(pieces.values())), np.arange(segments.size))
     for g in lay.groups:
       assert g.obs_dim == lay.actor[g.name].size
 
@@ -187,9 +183,10 @@ def test_layout_needs_only_the_spec_and_the_config_fields():
 PHASE_OFFSET = {"left_leg": 0.0, "right_leg": 0.5, "left_arm": 0.5, "right_arm": 0.0}
 
 
-@pytest.fixture(scope="module", params=[(t, r) for t, r in itertools.product(
-    tasks.names(), robots.names()) if all(robots.load(r).limbs_of(g) for g in tasks.get(t).acting)],
-                ids="-".join)
+@pytest.fixture(
+    scope="module",
+    params=[(t, r) for t, r in itertools.product(tasks.names(), robots.names()) if all(
+        robots.load(r).limbs_of(g) for g in tasks.get(t).acting)], ids="-".join)
 def reset_env(request):
   """One env per task and robot and its reset state (jitted reset)."""
   task, robot = request.param
@@ -221,24 +218,24 @@ def _expected_segments(env, qpos, qvel, info, contact):
     rows = []
     for k, limb in enumerate(members):
       a = 2 * np.pi * (phase + PHASE_OFFSET[limb.name])
-      rows.append(dict(
-          q=[angle[j] for j in limb.joints], dq=[rate[j] for j in limb.joints],
-          last_action=[last[j] for j in limb.joints], phase=[np.sin(a), np.cos(a)], euler=euler,
-          ang_vel=ang_vel, command=command, agent_id=np.eye(len(members))[k]))
+      rows.append(
+          dict(q=[angle[j] for j in limb.joints], dq=[rate[j] for j in limb.joints],
+               last_action=[last[j] for j in limb.joints], phase=[np.sin(a), np.cos(a)],
+               euler=euler, ang_vel=ang_vel, command=command, agent_id=np.eye(len(members))[k]))
     actors[kind] = rows
 
   q_ref, stance = map(np.asarray, env.gait(jnp.asarray(phase), command[0], jnp.asarray(command)))
   dr = info["dr"]
   mass = np.asarray(m.body_mass)
   q_rel = np.array([angle[j] for j in spec.joints])
-  critic = dict(
-      q_rel=q_rel, dq=[rate[j] for j in spec.joints],
-      last_action=[last.get(j, 0.0) for j in spec.joints], q_rel_minus_ref=q_rel - q_ref,
-      phase=[np.sin(2 * np.pi * phase), np.cos(2 * np.pi * phase)], command=command,
-      lin_vel=torso.inv().apply(qvel[0:3]), euler=euler, ang_vel=ang_vel,
-      push=np.asarray(info["push"]), friction=[float(dr.friction)],
-      mass_offset=[float(np.sum(mass * np.asarray(dr.mass_scale)) - np.sum(mass))],
-      stance=stance, contact=np.asarray(contact))
+  critic = dict(q_rel=q_rel, dq=[rate[j] for j in spec.joints], last_action=[
+      last.get(j, 0.0) for j in spec.joints
+  ], q_rel_minus_ref=q_rel - q_ref, phase=[np.sin(2 * np.pi * phase),
+                                           np.cos(2 * np.pi * phase)], command=command,
+                lin_vel=torso.inv().apply(qvel[0:3]), euler=euler, ang_vel=ang_vel,
+                push=np.asarray(info["push"]), friction=[float(dr.friction)], mass_offset=[
+                    float(np.sum(mass * np.asarray(dr.mass_scale)) - np.sum(mass))
+                ], stance=stance, contact=np.asarray(contact))
   return actors, critic
 
 
@@ -264,8 +261,9 @@ def test_each_segment_of_a_reset_observation_holds_its_name(reset_env):
   data = state.pipeline_state
   _check_segments(env, state.obs, data.qpos, data.qvel, state.info, np.ones(2))
   # The named segments read the state's own entries, e.g. the critic's command segment:
-  np.testing.assert_array_equal(np.asarray(state.obs["critic"])[env.layout.critic.slice("command")],
-                                np.asarray(state.info["command"]))
+  np.testing.assert_array_equal(
+      np.asarray(state.obs["critic"])[env.layout.critic.slice("command")],
+      np.asarray(state.info["command"]))
 
 
 def test_each_segment_of_a_moved_state_holds_its_name(reset_env):
@@ -292,6 +290,7 @@ def private_env_reads(source: str) -> list[str]:
   """``'line: owner._field'`` for every read of a private attribute (one underscore, not a
   dunder) of an object named ``env`` or ``*_env`` (``env._x``, ``parts.env._x``, ``dr_env._x``,
   ``getattr(env, '_x')``) in Python ``source``."""
+
   def env_like(node):
     name = node.id if isinstance(node, ast.Name) else getattr(node, "attr", None)
     return name if name is not None and (name == "env" or name.endswith("_env")) else None
@@ -303,10 +302,10 @@ def private_env_reads(source: str) -> list[str]:
   for node in ast.walk(ast.parse(source)):
     if isinstance(node, ast.Attribute) and private(node.attr) and env_like(node.value):
       hits.append(f"{node.lineno}: {env_like(node.value)}.{node.attr}")
-    elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
-          and node.func.id in ("getattr", "hasattr") and len(node.args) >= 2
-          and env_like(node.args[0]) and isinstance(node.args[1], ast.Constant)
-          and isinstance(node.args[1].value, str) and private(node.args[1].value)):
+    elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and
+          node.func.id in ("getattr", "hasattr") and len(node.args) >= 2 and
+          env_like(node.args[0]) and isinstance(node.args[1], ast.Constant) and
+          isinstance(node.args[1].value, str) and private(node.args[1].value)):
       hits.append(f"{node.lineno}: {env_like(node.args[0])}.{node.args[1].value}")
   return sorted(hits, key=lambda h: int(h.split(":")[0]))
 
@@ -315,13 +314,17 @@ def test_the_scan_finds_private_reads():
   source = ("a = env._q_default\nb = parts.env._ctrl[0]\nc = dr_env._qadr\n"
             "d = getattr(env, '_act')\ne = env.layout.controlled\nf = self._ctrl\n"
             "g = env.__class__\nh = environment._x\n")
-  assert private_env_reads(source) == ["1: env._q_default", "2: env._ctrl", "3: dr_env._qadr",
-                                       "4: env._act"]
+  assert private_env_reads(source) == [
+      "1: env._q_default", "2: env._ctrl", "3: dr_env._qadr", "4: env._act"
+  ]
 
 
 def test_no_module_but_env_reads_a_mash_env_private_field():
   files = sorted((REPO / "mash").rglob("*.py")) + sorted((REPO / "experiments").glob("*.py"))
   assert len(files) > 20
-  found = {str(f.relative_to(REPO)): private_env_reads(f.read_text()) for f in files
-           if f != REPO / "mash" / "sim" / "env.py"}
+  found = {
+      str(f.relative_to(REPO)): private_env_reads(f.read_text())
+      for f in files
+      if f != REPO / "mash" / "sim" / "env.py"
+  }
   assert {f: hits for f, hits in found.items() if hits} == {}

@@ -32,7 +32,7 @@ def test_auto_is_two_processes_for_one_seed_on_a_multicore_cpu(monkeypatch):
   monkeypatch.setattr(os, "cpu_count", lambda: 2)
   assert launch.local_processes_wanted(_args(), "cpu", 1) == 2  # JAX's backend here is the CPU
   assert launch.local_processes_wanted(_args(), "smoke", 1) == 1  # collectives outweigh a core
-  assert launch.local_processes_wanted(_args(), "cpu", 3) == 1    # seeds train in one process
+  assert launch.local_processes_wanted(_args(), "cpu", 3) == 1  # seeds train in one process
   assert launch.local_processes_wanted(_args(num_processes="2"), "cpu", 1) == 1  # joined by hand
   monkeypatch.setattr(os, "cpu_count", lambda: 1)
   assert launch.local_processes_wanted(_args(), "cpu", 1) == 1

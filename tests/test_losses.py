@@ -37,24 +37,26 @@ def test_gae_matches_python_loop():
   truncs = dones * (rng.random((T, B)) < 0.5)  # some ends are time-outs, some falls
   assert dones.sum() > 2 and truncs.sum() > 0 and (dones - truncs).sum() > 0
   adv, ret = jax.jit(losses.compute_gae, static_argnums=(5, 6))(
-      *(jnp.asarray(x, jnp.float32) for x in (rewards, values, next_values, dones, truncs)),
-      0.97, 0.9)
+      *(jnp.asarray(x, jnp.float32) for x in (rewards, values, next_values, dones, truncs)), 0.97,
+      0.9)
   ref_adv, ref_ret = gae_loop(rewards, values, next_values, dones, truncs, 0.97, 0.9)
   chex.assert_shape(adv, (T, B, N))
   np.testing.assert_allclose(adv, ref_adv, rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(ret, ref_ret, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize('truncated, expected_adv', [
-    # gamma = lam = 0.5, r = 1, V = [1, 2, 3], V(s') = [2, 10, 4], episode ends at t=1.
-    # delta_2 = 1 + 0.5*4 - 3 = 0                          -> A_2 = 0
-    # time-out at t=1: delta_1 = 1 + 0.5*10 - 2 = 4 (bootstrap), A_1 = 4 + 0 (cut) = 4
-    #                  delta_0 = 1 + 0.5*2 - 1 = 1,           A_0 = 1 + 0.25*4 = 2
-    (1.0, [2.0, 4.0, 0.0]),
-    # fall at t=1:     delta_1 = 1 + 0 - 2 = -1,              A_1 = -1
-    #                                                         A_0 = 1 + 0.25*(-1) = 0.75
-    (0.0, [0.75, -1.0, 0.0]),
-])
+@pytest.mark.parametrize(
+    "truncated, expected_adv",
+    [
+        # gamma = lam = 0.5, r = 1, V = [1, 2, 3], V(s') = [2, 10, 4], episode ends at t=1.
+        # delta_2 = 1 + 0.5*4 - 3 = 0                          -> A_2 = 0
+        # time-out at t=1: delta_1 = 1 + 0.5*10 - 2 = 4 (bootstrap), A_1 = 4 + 0 (cut) = 4
+        #                  delta_0 = 1 + 0.5*2 - 1 = 1,           A_0 = 1 + 0.25*4 = 2
+        (1.0, [2.0, 4.0, 0.0]),
+        # fall at t=1:     delta_1 = 1 + 0 - 2 = -1,              A_1 = -1
+        #                                                         A_0 = 1 + 0.25*(-1) = 0.75
+        (0.0, [0.75, -1.0, 0.0]),
+    ])
 def test_gae_hand_cases(truncated, expected_adv):
   rewards = jnp.ones((3, 1))
   values = jnp.array([1.0, 2.0, 3.0]).reshape(3, 1, 1)
@@ -82,15 +84,15 @@ def test_mappo_loss_terms_hand_computed():
   # agent 0: min(1.5*1, 1.2*1) = 1.2 ; min(0.9*-2, 0.9*-2) = -1.8   -> mean -0.3
   # agent 1: min(0.7*-1, 0.8*-1) = -0.8 ; min(1.1*3, 1.1*3) = 3.3   -> mean 1.25
   # policy loss = -(-0.3 + 1.25) = -0.95 (summed over agents)
-  np.testing.assert_allclose(m['policy_loss'], -0.95, atol=1e-5)
+  np.testing.assert_allclose(m["policy_loss"], -0.95, atol=1e-5)
   # value errors: a0s0 max((.5-1)^2, (0.2-1)^2) = .64 ; a0s1 (.9-1)^2 = .01 ;
   # a1s0 (2.1-2)^2 = .01 ; a1s1 max((-.5-1)^2, (-.2-1)^2) = 2.25   -> mean 2.91/4 = 0.7275
-  np.testing.assert_allclose(m['value_loss'], 0.7275, atol=1e-5)
-  np.testing.assert_allclose(m['entropy'], 3.0, atol=1e-6)  # summed over agents
+  np.testing.assert_allclose(m["value_loss"], 0.7275, atol=1e-5)
+  np.testing.assert_allclose(m["entropy"], 3.0, atol=1e-6)  # summed over agents
   # |r-1| > 0.2 for r = 1.5 and 0.7 -> 2 of 4
-  np.testing.assert_allclose(m['clip_fraction'], 0.5)
+  np.testing.assert_allclose(m["clip_fraction"], 0.5)
   # k3 KL (r-1) - ln r: a0 (0.094535 + 0.005361)/2, a1 (0.056675 + 0.004690)/2 -> sum 0.0806305
-  np.testing.assert_allclose(m['approx_kl'], 0.0806305, atol=1e-5)
+  np.testing.assert_allclose(m["approx_kl"], 0.0806305, atol=1e-5)
   # loss = -0.95 + 0.5*0.7275 - 0.01*3 = -0.61625
   np.testing.assert_allclose(loss, -0.61625, atol=1e-5)
 
@@ -100,7 +102,7 @@ def test_value_clip_disabled():
   z = jnp.zeros((2, 1))
   values = jnp.array([[0.5], [3.0]])
   _, m = losses.mappo_loss_terms(z, z, z, values, z, jnp.ones((2, 1)), jnp.zeros((1,)), config)
-  np.testing.assert_allclose(m['value_loss'], (0.25 + 4.0) / 2)  # plain squared error
+  np.testing.assert_allclose(m["value_loss"], (0.25 + 4.0) / 2)  # plain squared error
 
 
 def test_normalize_advantages_per_agent():

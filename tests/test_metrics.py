@@ -83,7 +83,8 @@ def test_torso_stability_known_variances():
   sgn = np.where(np.arange(100) % 2 == 0, 1.0, -1.0)
   h = 1.0 + 0.2 * sgn
   euler = np.stack(
-      [np.full(100, 0.3), 0.1 * sgn, np.where(sgn > 0, np.pi - 0.05, -np.pi + 0.05)],
+      [np.full(100, 0.3), 0.1 * sgn,
+       np.where(sgn > 0, np.pi - 0.05, -np.pi + 0.05)],
       axis=-1,
   )
   assert metrics.torso_stability(h, euler) == pytest.approx(0.04 + 0.01 + 0.0025)
@@ -155,7 +156,8 @@ def test_all_metrics_batched_shapes_and_types():
       "actions": rng.normal(size=(e, t, a)),
       "base_height": 1.0 + 0.01 * rng.normal(size=(e, t)),
       "euler": 0.01 * rng.normal(size=(e, t, 3)),
-      "hip_pitch": np.stack([np.tile(np.sin(W), (e, 1)), np.tile(-np.sin(W), (e, 1))], -1),
+      "hip_pitch": np.stack(
+          [np.tile(np.sin(W), (e, 1)), np.tile(-np.sin(W), (e, 1))], -1),
   }
   out = metrics.all_metrics(traj, rewards_per_iteration=1.0 - np.exp(-np.arange(1000) / 100.0))
   assert set(out) == {"S_action", "S_action_2nd", "S_torso", "C_limb", "T_conv"}

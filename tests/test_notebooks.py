@@ -45,22 +45,28 @@ def test_mash_vs_ppo_notebook(evaluated_smoke_run, tmp_path):
   for algo in ("mash", "ppo"):  # the smoke run stands in for both methods: the plumbing is tested
     shutil.copytree(smoke_run, root / algo)
   nb = run_notebook("mash_vs_ppo.ipynb", {"COMPARE_DIR": str(root), "TASK": "bipedal"}, tmp_path)
-  text = "".join(str(o.get("data", {}).get("text/markdown", "")) for c in nb.cells
-                 if c.cell_type == "code" for o in c.outputs)
+  text = "".join(
+      str(o.get("data", {}).get("text/markdown", "")) for c in nb.cells if c.cell_type == "code"
+      for o in c.outputs)
   assert "MASH vs single-agent PPO" in text
 
 
 def test_ablations_notebook(tmp_path):
-  run_notebook("ablations.ipynb", {"TASK": "bipedal", "PRESET": "smoke", "SEEDS": 1,
-                                        "ABLATIONS": ["none"], "OUT": str(tmp_path / "abl"),
-                                        "OVERRIDES": []}, tmp_path)
+  run_notebook(
+      "ablations.ipynb", {
+          "TASK": "bipedal", "PRESET": "smoke", "SEEDS": 1, "ABLATIONS": ["none"], "OUT": str(
+              tmp_path / "abl"), "OVERRIDES": []
+      }, tmp_path)
   assert (tmp_path / "abl" / "bipedal_none" / "progress.csv").is_file()
 
 
 def test_robustness_notebook(smoke_run, tmp_path):
-  nb = run_notebook("robustness.ipynb", {"RUN_DIR": str(smoke_run), "FRICTIONS": [0.3, 1.0],
-                                         "PUSHES": [0.0, 100.0], "EPISODES_PER_VALUE": 1,
-                                         "SECONDS": 1.0}, tmp_path)
-  text = "".join(str(o.get("data", {}).get("text/markdown", "")) for c in nb.cells
-                 if c.cell_type == "code" for o in c.outputs)
+  nb = run_notebook(
+      "robustness.ipynb", {
+          "RUN_DIR": str(smoke_run), "FRICTIONS": [0.3, 1.0], "PUSHES": [0.0, 100.0],
+          "EPISODES_PER_VALUE": 1, "SECONDS": 1.0
+      }, tmp_path)
+  text = "".join(
+      str(o.get("data", {}).get("text/markdown", "")) for c in nb.cells if c.cell_type == "code"
+      for o in c.outputs)
   assert "| friction | 0.3 |" in text and "| push | 100 |" in text

@@ -12,9 +12,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_the_wheel_holds_every_robot_file_and_policy_folder(tmp_path):
-  out = subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps",
-                        "--no-build-isolation", "-q", "-w", str(tmp_path)],
-                       capture_output=True, text=True, timeout=600)
+  out = subprocess.run([
+      sys.executable, "-m", "pip", "wheel",
+      str(REPO), "--no-deps", "--no-build-isolation", "-q", "-w",
+      str(tmp_path)
+  ], capture_output=True, text=True, timeout=600)
   assert out.returncode == 0, out.stderr[-2000:]
   (wheel,) = tmp_path.glob("mash_jax-*.whl")
   names = set(zipfile.ZipFile(wheel).namelist())

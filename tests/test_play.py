@@ -33,9 +33,11 @@ def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
   if backend is None:
     skip_for_missing_gl(reason)
   video = tmp_path / "walk.mp4"
-  out = subprocess.run([sys.executable, "-m", "experiments.play", "--policy", "t1_bipedal_mash",
-                        "--seconds", "2", "--video", str(video)], capture_output=True, text=True,
-                       cwd=tmp_path, env=_headless_env(), timeout=300)
+  out = subprocess.run([
+      sys.executable, "-m", "experiments.play", "--policy", "t1_bipedal_mash", "--seconds", "2",
+      "--video",
+      str(video)
+  ], capture_output=True, text=True, cwd=tmp_path, env=_headless_env(), timeout=300)
   assert out.returncode == 0, out.stdout + out.stderr[-3000:]
   assert f"wrote {video}" in out.stdout and "walked 2.0 s" in out.stdout, out.stdout
   data = video.read_bytes()
@@ -46,8 +48,8 @@ def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
     (["--policy", "no_such_policy"], "--policy 'no_such_policy': expected a shipped policy name"),
     (["--policy", "t1_bipedal_mash", "--command", "fast"], "expected VX or VX,VY,YAW_RATE"),
     (["--policy", "t1_bipedal_mash", "--command", "1,2"], "'1,2': expected VX or VX,VY,YAW_RATE"),
-    (["--policy", "t1_bipedal_mash", "--command", "2.5"],
-     "--command vx 2.5 m/s is outside the range the policy was trained on, [-0.3, 0.8] m/s, by "
+    (["--policy", "t1_bipedal_mash", "--command", "2.5"
+     ], "--command vx 2.5 m/s is outside the range the policy was trained on, [-0.3, 0.8] m/s, by "
      "more than half its width; expected a command within [-0.85, 1.35] m/s"),
     (["--policy", "t1_bipedal_mash", "--command", "0.4,0,-2"], "--command yaw_rate -2 rad/s"),
     (["--policy", "t1_bipedal_mash", "--seconds", "nan"], "expected a duration in (0, 3600]"),

@@ -22,12 +22,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash.runs import checkpoint
-from mash.runs import experiment
+from mash.deploy import policy as policy_lib
 from mash.rl import networks
+from mash.runs import checkpoint, experiment
 from mash.runs import loop as runs
 from mash.sim import env as env_lib
-from mash.deploy import policy as policy_lib
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOYMENT = ("experiments.evaluate", "experiments.export", "experiments.play",
@@ -43,8 +42,10 @@ def random_obs(env, batch: int, seed: int = 0) -> dict[str, jax.Array]:
   """``{group: [batch, n_agents, obs_dim]}`` observations, spread wide enough that some
   normalized entries reach the clip."""
   rng = np.random.default_rng(seed)
-  return {g.name: jnp.asarray(rng.normal(0.0, 3.0, (batch, g.n_agents, g.obs_dim)), jnp.float32)
-          for g in env.agent_groups}
+  return {
+      g.name: jnp.asarray(rng.normal(0.0, 3.0, (batch, g.n_agents, g.obs_dim)), jnp.float32)
+      for g in env.agent_groups
+  }
 
 
 def assert_same_policy(a: policy_lib.Policy, b: policy_lib.Policy) -> None:
@@ -58,8 +59,7 @@ def assert_same_policy(a: policy_lib.Policy, b: policy_lib.Policy) -> None:
 def test_policy_acts_as_the_trainer(smoke_run, smoke_trainer, smoke_config):
   """The policy loaded without a trainer holds the trainer's restored actors and actor-stream
   statistics bit for bit, and acts as the trainer's networks do on them."""
-  restored = runs.restore_run(smoke_run, smoke_trainer,
-                              fields=checkpoint.POLICY_FIELDS)
+  restored = runs.restore_run(smoke_run, smoke_trainer, fields=checkpoint.POLICY_FIELDS)
   policy = policy_lib.load(smoke_run)
   assert policy.iteration == int(restored.step) == smoke_config.train.num_iterations
   assert (policy.seed, policy.source, policy.config) == (0, str(smoke_run), smoke_config)
@@ -84,8 +84,9 @@ def test_policy_folder_round_trip(smoke_run, tmp_path):
   folder holds the four documented files, only actor parameters and statistics, and is small."""
   policy = policy_lib.load(smoke_run)
   folder = policy_lib.save(policy, tmp_path / "policy")
-  assert sorted(p.name for p in folder.iterdir()) == ["card.md", "config.json", "policy.json",
-                                                       "policy.npz"]
+  assert sorted(p.name for p in folder.iterdir()) == [
+      "card.md", "config.json", "policy.json", "policy.npz"
+  ]
   size = sum(p.stat().st_size for p in folder.iterdir())
   # Smoke actor: 32-64-64-6 MLP (6,534 floats) + statistics: ~30 KiB of arrays, ~35 KiB in all.
   assert size < 64 * 1024, size
@@ -153,7 +154,7 @@ def test_paths_that_are_not_a_policy_are_one_line(smoke_run, tmp_path):
       (lambda: policy_lib.load(tmp_path / "empty"),
        "is not a run directory or a policy folder (no config.json)"),
       (lambda: policy_lib.load(tmp_path / "file"), "is a file; expected a run directory or a "
-                                                   "policy folder"),
+       "policy folder"),
       (lambda: policy_lib.load(tmp_path / "missing"), "run directory '"),
       (lambda: policy_lib.load(folder, iteration=3), "is a policy folder of iteration 10 only"),
       (lambda: policy_lib.load(folder, seed=1), "seed 1 is out of range: the policy folder"),
@@ -199,9 +200,11 @@ def test_a_truncated_policy_archive_is_one_line(smoke_run, tmp_path):
   (folder / "policy.npz").write_bytes(data[:len(data) // 2])
   with pytest.raises(policy_lib.RunError, match="policy.npz' is not a policy's arrays"):
     policy_lib.load(folder)
-  out = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--run", str(folder),
-                        "--episodes", "1", "--seconds", "0.1"], cwd=REPO, capture_output=True,
-                       text=True, timeout=600, env=dict(os.environ, PYTHONPATH=str(REPO)))
+  out = subprocess.run([
+      sys.executable, "-m", "experiments.evaluate", "--run",
+      str(folder), "--episodes", "1", "--seconds", "0.1"
+  ], cwd=REPO, capture_output=True, text=True, timeout=600, env=dict(os.environ,
+                                                                     PYTHONPATH=str(REPO)))
   lines = [l for l in out.stderr.splitlines() if l.strip() and "warp" not in l]
   assert out.returncode == 2 and len(lines) == 1, out.stderr[-2000:]
   assert lines[0].startswith("error: ") and "policy.npz' is not a policy's arrays" in lines[0]
@@ -214,10 +217,14 @@ def test_deployment_does_not_import_training(smoke_run, tmp_path):
   its losses, the host loop and the launcher, nor optax, the optimizer: flax.linen, which the
   networks use, does not import it; only training does)."""
   folder = policy_lib.save(policy_lib.load(smoke_run), tmp_path / "policy")
-  out = subprocess.run([sys.executable, "-c", _GRAPH_PROBE, str(smoke_run), str(folder),
-                        str(tmp_path / "probe.onnx"), json.dumps(TRAINING)],
-                       cwd=REPO, capture_output=True, text=True, timeout=600,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+  out = subprocess.run([
+      sys.executable, "-c", _GRAPH_PROBE,
+      str(smoke_run),
+      str(folder),
+      str(tmp_path / "probe.onnx"),
+      json.dumps(TRAINING)
+  ], cwd=REPO, capture_output=True, text=True, timeout=600, env=dict(os.environ,
+                                                                     PYTHONPATH=str(REPO)))
   assert out.returncode == 0, out.stderr[-3000:]
   assert "OK" in out.stdout, out.stdout
   assert json.loads(out.stdout.strip().splitlines()[-1]) == [], out.stdout

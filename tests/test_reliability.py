@@ -24,13 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash.runs import checkpoint
-from mash.rl import losses
 from mash.deploy import policy
-from mash.sim import robots
-from mash.runs import loop as runs
+from mash.rl import losses
 from mash.rl.config import TrainConfig
+from mash.runs import checkpoint
+from mash.runs import loop as runs
 from mash.sim import model as model_lib
+from mash.sim import robots
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,8 +44,11 @@ def _rows_without_wall(path: Path) -> list[dict[str, str]]:
 
 def _tree_digest(root: Path) -> dict[str, str]:
   """``{relative path: sha1}`` of every file under ``root``."""
-  return {str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
-          for p in sorted(root.rglob("*")) if p.is_file()}
+  return {
+      str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
+      for p in sorted(root.rglob("*"))
+      if p.is_file()
+  }
 
 
 def _tear(step_dir: Path) -> None:
@@ -68,8 +71,10 @@ def _subprocess_env() -> dict[str, str]:
 
 def _finite(tree) -> bool:
   """Every floating-point leaf of ``tree`` is finite."""
-  return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree.leaves(tree)
-             if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating))
+  return all(
+      bool(np.all(np.isfinite(np.asarray(x))))
+      for x in jax.tree.leaves(tree)
+      if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating))
 
 
 # ----------------------------------------------------------------- 1. physics blow-ups (NaN/inf)
@@ -134,8 +139,7 @@ def test_toy_trainer_survives_a_nan_state(mash_trainer):
   metrics = jax.device_get(metrics)
   np.testing.assert_array_equal(metrics["nan_resets"], [1, 0, 0, 0, 0])
   assert _finite(metrics), {k: v for k, v in metrics.items() if not np.all(np.isfinite(v))}
-  assert _finite(jax.device_get((state.params, state.opt_state, state.normalizer,
-                                 state.env_state)))
+  assert _finite(jax.device_get((state.params, state.opt_state, state.normalizer, state.env_state)))
 
 
 def test_mjx_trainer_survives_nan_and_inf_states(smoke_trainer):
@@ -165,8 +169,9 @@ def test_robot_spec_with_a_missing_joint_is_one_line(capsys):
   leg = t1.limbs[0]
   typo = dataclasses.replace(leg, joints=(leg.joints[0] + "_typo",) + leg.joints[1:])
   bad = dataclasses.replace(t1, limbs=(typo,) + t1.limbs[1:])
-  with pytest.raises(robots.SpecError, match=rf"limb 'left_leg' joints.hip_pitch: joint "
-                     rf"'{leg.joints[0]}_typo' is not in the model"):
+  with pytest.raises(
+      robots.SpecError, match=rf"limb 'left_leg' joints.hip_pitch: joint "
+      rf"'{leg.joints[0]}_typo' is not in the model"):
     model_lib.build_model(bad)
   with pytest.raises(SystemExit) as e, common.user_errors():
     model_lib.build_model(bad)
@@ -193,18 +198,18 @@ def _main_error(capsys, module: str, argv: list[str]) -> str:
     (["--set", "env.partition=limbs"], "env.partition 'limbs' is unknown"),
     (["--set", "env.ctrl_dt=0.021"], "env.ctrl_dt 0.021 must be a whole multiple"),
     (["--set", "checkpoint_every=0"], "checkpoint_every must be >= 1"),
-    (["--set", "env.reward_params.ramped_terms=torque_rat"],
-     "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
-    (["--set", "env.reward_params.tracking_boost=0.5"],
-     "env.reward_params.tracking_boost must be in [1, 100]"),
-    (["--set", "env.randomization.friction_initial=0.3,0.1"],
-     "env.randomization.friction_initial must be a range (lo, hi) with 0 < lo <= hi"),
-    (["--set", "env.randomization.friction_ramp_steps=-5"],
-     "env.randomization.friction_ramp_steps must be in [0, 2147483647] steps"),
+    (["--set", "env.reward_params.ramped_terms=torque_rat"
+     ], "env.reward_params.ramped_terms: 'torque_rat' is not a reward term"),
+    (["--set", "env.reward_params.tracking_boost=0.5"
+     ], "env.reward_params.tracking_boost must be in [1, 100]"),
+    (["--set", "env.randomization.friction_initial=0.3,0.1"
+     ], "env.randomization.friction_initial must be a range (lo, hi) with 0 < lo <= hi"),
+    (["--set", "env.randomization.friction_ramp_steps=-5"
+     ], "env.randomization.friction_ramp_steps must be in [0, 2147483647] steps"),
     (["--set", "algo=sac"], "algo 'sac' is unknown"),
     (["--set", "train.num_envs=0"], "num_envs must be in [1, 1048576]"),
-    (["--set", "train.learning_rate_schedule=cosine"],
-     "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl, linear"),
+    (["--set", "train.learning_rate_schedule=cosine"
+     ], "learning_rate_schedule 'cosine' is unknown; expected one of fixed, adaptive_kl, linear"),
     (["--seeds", "0"], "seeds must be >= 1"),
     (["--resume", "DIR", "--set", "train.num_iterations=20"], "--set cannot be combined"),
 ])
@@ -212,8 +217,9 @@ def test_cli_bad_config_is_one_line(capsys, tmp_path, argv, words):
   """Config mistakes that used to surface as tracebacks from deep inside (or be ignored)."""
   argv = [str(tmp_path) if a == "DIR" else a for a in argv]
   out = tmp_path / "out"
-  line = _main_error(capsys, "bipedal", ["--preset", "smoke", "--out", str(out), *argv]
-                     if "--resume" not in argv else argv)
+  line = _main_error(
+      capsys, "bipedal",
+      ["--preset", "smoke", "--out", str(out), *argv] if "--resume" not in argv else argv)
   assert words in line, line
   assert not out.exists()
 
@@ -231,29 +237,46 @@ def test_benchmark_bad_stage_is_one_line(capsys):
 def test_benchmark_ratios_only_for_measured_pairs():
   """A partial run (``--stages env,mash,brax_ppo``) reports the ratios it can, nothing else."""
   from mash.bench import benchmark
-  result = {"env_steps_per_s": 1000.0, "env_physics_equivalent_per_s": 4000.0,
-            "train_env_steps_per_s": {"mash": 750.0, "brax_ppo": 600.0}}
+  result = {
+      "env_steps_per_s": 1000.0, "env_physics_equivalent_per_s": 4000.0,
+      "train_env_steps_per_s": {"mash": 750.0, "brax_ppo": 600.0}
+  }
   assert benchmark.ratios(result) == {"mash_train_vs_env": 0.75, "mash_vs_brax_ppo": 1.25}
   result.update(physics_steps_per_s=5000.0, train_env_steps_per_s={"mash": 750.0, "ppo": 800.0})
-  assert benchmark.ratios(result) == {"env_vs_physics": 0.8, "mash_train_vs_env": 0.75,
-                                       "mash_vs_ppo": 0.9375}
+  assert benchmark.ratios(result) == {
+      "env_vs_physics": 0.8, "mash_train_vs_env": 0.75, "mash_vs_ppo": 0.9375
+  }
 
 
 def test_device_scaling_writes_table_and_plot(tmp_path):
   """``benchmark_devices`` writes its JSON, a markdown table with every row, and the PNG plot."""
   import json
+
   from mash.bench import devices
   row = lambda variant, n, sps, ratio: {
       "variant": variant, "processes": n, "envs_per_process": 256 // n, "env_steps_per_s": sps,
-      "physics_steps_per_s": 4 * sps, "cpu_cores_used": float(n), "compile_s": 30.0,
-      "ratio_vs_one_process": ratio}
-  result = {"batch": 256, "steps": 20, "task": "bipedal", "date": "today", "cpu_count": 2,
-            "load_average_at_start": 0.5, "train_batch": 64,
-            "summary": {"second_core_buys": 1.9, "second_core_buys_without_collective": 2.0,
-                        "collective_cost": 0.05, "second_core_buys_training": 1.5},
-            "rows": [row("one_process", 1, 1000.0, 1.0), row("two_process_mesh", 2, 1900.0, 1.9),
-                     row("train_one_process", 1, 800.0, 1.0),
-                     row("train_two_process", 2, 1200.0, 1.5)]}
+      "physics_steps_per_s": 4 * sps, "cpu_cores_used": float(
+          n), "compile_s": 30.0, "ratio_vs_one_process": ratio
+  }
+  result = {
+      "batch":
+          256, "steps":
+              20, "task":
+                  "bipedal", "date":
+                      "today", "cpu_count":
+                          2, "load_average_at_start":
+                              0.5, "train_batch":
+                                  64,
+      "summary": {
+          "second_core_buys": 1.9, "second_core_buys_without_collective": 2.0,
+          "collective_cost": 0.05, "second_core_buys_training": 1.5
+      }, "rows": [
+          row("one_process", 1, 1000.0, 1.0),
+          row("two_process_mesh", 2, 1900.0, 1.9),
+          row("train_one_process", 1, 800.0, 1.0),
+          row("train_two_process", 2, 1200.0, 1.5)
+      ]
+  }
   stem = tmp_path / "scaling_devices"
   devices.write_report(result, stem)
   assert json.loads(stem.with_suffix(".json").read_text()) == result
@@ -286,17 +309,17 @@ def test_cli_bad_run_directories_are_one_line(capsys, smoke_run, tmp_path):
 
 
 @pytest.mark.parametrize("command, argv, words", [
-    ("bipedal", ["--preset", "smoke", "--set", "train.learning_rate=nan"],
-     "TrainConfig.learning_rate must be in (0, 1], got nan"),
-    ("bipedal", ["--preset", "smoke", "--set", "train.actor_hidden=0"],
-     "TrainConfig.actor_hidden must be one or more layer sizes >= 1"),
+    ("bipedal", ["--preset", "smoke", "--set", "train.learning_rate=nan"
+                ], "TrainConfig.learning_rate must be in (0, 1], got nan"),
+    ("bipedal", ["--preset", "smoke", "--set", "train.actor_hidden=0"
+                ], "TrainConfig.actor_hidden must be one or more layer sizes >= 1"),
     ("bipedal", ["--preset", "smoke", "--set", "train.gamma=inf"], "TrainConfig.gamma must be in"),
-    ("bipedal", ["--preset", "smoke", "--out", "/proc/forbidden"],
-     "--out '/proc/forbidden' cannot be written"),
-    ("export", ["--run", "SMOKE", "--out", "/proc/x.onnx"],
-     "--out '/proc/x.onnx' cannot be written (folder '/proc'"),
-    ("sim2sim", ["--run", "SMOKE", "--video", "/proc/x.mp4"],
-     "--video '/proc/x.mp4' cannot be written (folder '/proc'"),
+    ("bipedal", ["--preset", "smoke", "--out", "/proc/forbidden"
+                ], "--out '/proc/forbidden' cannot be written"),
+    ("export", ["--run", "SMOKE", "--out", "/proc/x.onnx"
+               ], "--out '/proc/x.onnx' cannot be written (folder '/proc'"),
+    ("sim2sim", ["--run", "SMOKE", "--video", "/proc/x.mp4"
+                ], "--video '/proc/x.mp4' cannot be written (folder '/proc'"),
 ])
 def test_bad_numbers_and_unwritable_outputs_are_one_line_before_any_work(
     capsys, smoke_run, command, argv, words):
@@ -335,8 +358,7 @@ def test_same_seed_gives_bit_identical_progress(smoke_run, second_run):
     assert len(a) == 10 and a == b, name
 
 
-def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer, tmp_path,
-                                                       capfd):
+def test_torn_latest_checkpoint_falls_back_and_resumes(second_run, smoke_trainer, tmp_path, capfd):
   """Garbage in the newest step (10): loading warns once and uses step 5; ``--resume`` moves the
   torn step aside (never deletes it), retrains 6..10 and logs exactly what the intact run logged,
   its clock going on from step 5's logged ``wall_s`` though no ``summary.json`` is left."""
@@ -380,8 +402,8 @@ def _du(path: Path) -> int:
   return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def test_checkpoints_without_env_state_are_small_and_resume(smoke_config, smoke_trainer,
-                                                            second_run, tmp_path):
+def test_checkpoints_without_env_state_are_small_and_resume(smoke_config, smoke_trainer, second_run,
+                                                            tmp_path):
   """``checkpoint_env_state = False``: step 5 holds no env state (under half the full step's
   bytes) and the same learning state as the full run's step 5; a resume from it trains 6..10 on
   fresh episodes (iterations 1..5 logged as before), with the curriculum clock at 5 x 16 steps."""
@@ -407,8 +429,8 @@ def test_checkpoints_without_env_state_are_small_and_resume(smoke_config, smoke_
   summary = runs.train(runs.load_config(run), run, resume=True, show_progress=False,
                        trainer=smoke_trainer)
   assert summary["iterations"] == 10 and not summary["interrupted"]
-  rows, intact = _rows_without_wall(run / "progress.csv"), _rows_without_wall(
-      second_run / "progress.csv")
+  rows, intact = _rows_without_wall(run / "progress.csv"), _rows_without_wall(second_run /
+                                                                              "progress.csv")
   assert [r["iteration"] for r in rows] == [str(i) for i in range(1, 11)]
   assert rows[:5] == intact[:5]
   assert all(np.isfinite(float(r["episode_reward"])) for r in rows[5:])
@@ -421,9 +443,10 @@ def test_evaluate_cli_on_a_torn_checkpoint_is_one_line(smoke_run, tmp_path):
   shutil.copytree(smoke_run, run)
   _tear(run / "checkpoints" / "10")
   before = _tree_digest(run)
-  out = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--run", str(run),
-                        "--episodes", "3", "--seconds", "1"], capture_output=True, text=True,
-                       cwd=REPO, env=_subprocess_env(), timeout=300)
+  out = subprocess.run([
+      sys.executable, "-m", "experiments.evaluate", "--run",
+      str(run), "--episodes", "3", "--seconds", "1"
+  ], capture_output=True, text=True, cwd=REPO, env=_subprocess_env(), timeout=300)
   lines = _stderr_lines(out.stderr)
   assert out.returncode == 2, out.stderr[-3000:]
   assert len(lines) == 1 and lines[0].startswith("error: no checkpoint in") \
@@ -518,17 +541,19 @@ def test_sigterm_saves_and_a_second_signal_aborts(smoke_config, smoke_trainer, t
     runs.train(cfg, tmp_path / "abort", show_progress=False, trainer=trainer)
   assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers
   assert runs.restore_run(tmp_path / "abort", smoke_trainer).step == 5
-  np.testing.assert_array_equal(runs.read_progress(tmp_path / "abort")["iteration"],
-                                np.arange(1, 6))
+  np.testing.assert_array_equal(
+      runs.read_progress(tmp_path / "abort")["iteration"], np.arange(1, 6))
 
 
 def _worker(marks: Path, kill: str, argv: list[str]) -> subprocess.Popen:
   """``tests/kill_worker.py``: the training CLI with ``argv``, SIGKILLed where ``kill`` says,
   leaving its marks in ``marks``."""
   marks.mkdir()
-  return subprocess.Popen([sys.executable, str(REPO / "tests" / "kill_worker.py"), str(marks), kill,
-                           "--", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                          text=True, cwd=REPO, env=_subprocess_env())
+  return subprocess.Popen(
+      [sys.executable,
+       str(REPO / "tests" / "kill_worker.py"),
+       str(marks), kill, "--", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+      cwd=REPO, env=_subprocess_env())
 
 
 def _wait_killed(proc: subprocess.Popen, mark: Path) -> None:
@@ -562,8 +587,9 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
   """
   out = tmp_path / "run"
   proc = _worker(tmp_path / "marks1", "none", [
-      "--preset", "smoke", "--out", str(out), "--no-progress", "--set", "train.num_iterations=15",
-      "--set", "checkpoint_every=1"])
+      "--preset", "smoke", "--out",
+      str(out), "--no-progress", "--set", "train.num_iterations=15", "--set", "checkpoint_every=1"
+  ])
   try:
     deadline = time.monotonic() + 400
     while not (tmp_path / "marks1" / "call_1").exists():
@@ -608,8 +634,8 @@ def test_ctrl_c_kills_and_resumes_in_subprocesses(smoke_run, smoke_trainer, unin
                            timeout=400)
   assert resumed.returncode == 0, resumed.stdout + resumed.stderr[-3000:]
   assert _iterations(out) == list(range(1, 16))
-  assert _rows_without_wall(out / "progress.csv")[:10] == _rows_without_wall(
-      smoke_run / "progress.csv")
+  assert _rows_without_wall(out / "progress.csv")[:10] == _rows_without_wall(smoke_run /
+                                                                             "progress.csv")
   _assert_same_end(out, uninterrupted, smoke_trainer)
 
 
@@ -642,6 +668,7 @@ def test_full_disk_at_a_checkpoint_is_one_line_and_resumes(smoke_config, smoke_t
   and ends as the uninterrupted run."""
   import asyncio
   import logging
+
   from orbax.checkpoint._src.path import async_path
   write_text = async_path.write_text
 
@@ -657,8 +684,7 @@ def test_full_disk_at_a_checkpoint_is_one_line_and_resumes(smoke_config, smoke_t
   monkeypatch.setattr(async_path, "write_text", full_at_step_10)
   out = tmp_path / "full"
   cfg = _fifteen(smoke_config)
-  line = _refused(capfd, lambda: runs.train(cfg, out, show_progress=False,
-                                            trainer=smoke_trainer))
+  line = _refused(capfd, lambda: runs.train(cfg, out, show_progress=False, trainer=smoke_trainer))
   assert line == (f"error: cannot write checkpoint step 10 in '{out / 'checkpoints'}': No space "
                   f"left on device; checkpoint step 5 is complete: free space, then --resume {out}")
   assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
@@ -694,8 +720,8 @@ class _FullFile:
 
 
 def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke_trainer,
-                                                             uninterrupted, tmp_path,
-                                                             monkeypatch, capfd):
+                                                             uninterrupted, tmp_path, monkeypatch,
+                                                             capfd):
   """1. The append of rows 11..15 to ``progress.csv`` runs out of room after rows 11, 12 and the
   first character of row 13, which reads as iteration 1: one line names the file and step 10,
   which still loads. 2. A resume drops the rows past step 10 and the cut one, trains to 15, and
@@ -715,8 +741,7 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
     return file
 
   monkeypatch.setattr(Path, "open", open_)
-  line = _refused(capfd, lambda: runs.train(cfg, out, show_progress=False,
-                                            trainer=smoke_trainer))
+  line = _refused(capfd, lambda: runs.train(cfg, out, show_progress=False, trainer=smoke_trainer))
   assert line == (f"error: cannot write '{out / 'progress.csv'}': No space left on device; "
                   f"checkpoint step 10 is complete: free space, then --resume {out}")
   monkeypatch.undo()
@@ -732,8 +757,8 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
     return written(self, data, *args, **kwargs)
 
   monkeypatch.setattr(Path, "write_text", write_text)
-  line = _refused(capfd, lambda: runs.train(cfg, out, resume=True, show_progress=False,
-                                            trainer=smoke_trainer))
+  line = _refused(
+      capfd, lambda: runs.train(cfg, out, resume=True, show_progress=False, trainer=smoke_trainer))
   assert line == (f"error: cannot write '{out / 'summary.json'}': No space left on device; "
                   f"checkpoint step 15 is complete: free space, then --resume {out}")
   monkeypatch.undo()
@@ -746,20 +771,22 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
   _assert_same_end(out, uninterrupted, smoke_trainer)
 
 
-@pytest.mark.parametrize("error, line", [
-    (_no_space("eval/metrics.json"),
-     "error: cannot write 'eval/metrics.json': No space left on device; free space, then run the "
-     "command again"),
-    (OSError(30, "Read-only file system", "run/policy.onnx"),
-     "error: cannot write 'run/policy.onnx': Read-only file system; free space, then run the "
-     "command again"),
-    # TensorStore (Orbax's array writer) on a real full disk (a 2 MB tmpfs), abridged.
-    (ValueError("RESOURCE_EXHAUSTED: Error writing \"['params']['w']/0\" in OCDBT database at "
-                "local file \"/full/ck/10.orbax-checkpoint-tmp/state.orbax-checkpoint-tmp/"
-                "ocdbt.process_0/\": Failed to write 1575916 bytes to file 4: No space left on "
-                "device [os_error_code='28']"),
-     "error: cannot write: No space left on device; free space, then run the command again"),
-])
+@pytest.mark.parametrize(
+    "error, line",
+    [
+        (_no_space("eval/metrics.json"),
+         "error: cannot write 'eval/metrics.json': No space left on device; free space, then run the "
+         "command again"),
+        (OSError(30, "Read-only file system", "run/policy.onnx"),
+         "error: cannot write 'run/policy.onnx': Read-only file system; free space, then run the "
+         "command again"),
+        # TensorStore (Orbax's array writer) on a real full disk (a 2 MB tmpfs), abridged.
+        (ValueError("RESOURCE_EXHAUSTED: Error writing \"['params']['w']/0\" in OCDBT database at "
+                    'local file "/full/ck/10.orbax-checkpoint-tmp/state.orbax-checkpoint-tmp/'
+                    'ocdbt.process_0/": Failed to write 1575916 bytes to file 4: No space left on '
+                    "device [os_error_code='28']"),
+         "error: cannot write: No space left on device; free space, then run the command again"),
+    ])
 def test_a_refused_write_in_any_command_is_one_line(capfd, error, line):
   """Evaluation's metrics, an ONNX export, a checkpoint outside ``runs.train``: one line, exit 1.
   Any other error is not the storage's and goes on as it was."""

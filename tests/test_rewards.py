@@ -9,8 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash.sim import rewards
-from mash.sim import robots
+from mash.sim import rewards, robots
 
 # The T1's clearance target (a RewardParams default of None means the robot's; the env fills it).
 P = rewards.RewardParams(feet_height_target=robots.load("booster_t1").feet_height_target)
@@ -24,20 +23,16 @@ PAPER_TERMS = ("joint_pos", "tracking_lin_vel", "tracking_ang_vel", "dof_torques
 def _inputs(**overrides) -> rewards.RewardInputs:
   """Two joints, two feet, four penalized pairs; numbers chosen to make the arithmetic short."""
   f = lambda *v: jnp.array(v, jnp.float32)
-  base = dict(
-      q_rel=f(0.3, 0.0), q_ref=f(0.0, 0.4),
-      dq=f(1.0, -2.0), last_dq=f(0.5, -1.0),
-      torque=f(10.0, -5.0), last_torque=f(8.0, -5.0), torque_limit=f(20.0, 10.0),
-      command=f(0.0, 0.5, 0.1, 0.2),
-      base_lin_vel=f(0.3, 0.1, 0.05), base_ang_vel=f(0.1, 0.2, -0.3),
-      euler=f(0.02, -0.03, 0.5), gravity_proj=f(0.03, -0.04, -np.sqrt(1 - 0.05**2)),
-      base_height=jnp.float32(0.65), base_height_target=jnp.float32(0.66),
-      feet_height=f(0.03, 0.12), feet_vel=f(0.1, 0.2, 0.0, 0.3).reshape(2, 2),
-      contact=f(1.0, 1.0), stance=f(0.0, 1.0),
-      first_contact=f(1.0, 0.0), air_time=f(0.3, 0.2), stride_error=f(0.1, 0.5),
-      penalty_force=f(0.05, 2.0, 0.0, 0.2),
-      action=f(0.5, -0.2), last_action=f(0.3, 0.1), last_last_action=f(0.0, 0.2),
-      dt=DT)
+  base = dict(q_rel=f(0.3, 0.0), q_ref=f(0.0, 0.4), dq=f(1.0, -2.0), last_dq=f(0.5, -1.0), torque=f(
+      10.0, -5.0), last_torque=f(8.0, -5.0), torque_limit=f(20.0, 10.0), command=f(
+          0.0, 0.5, 0.1, 0.2), base_lin_vel=f(0.3, 0.1, 0.05), base_ang_vel=f(0.1, 0.2, -0.3),
+              euler=f(0.02, -0.03, 0.5), gravity_proj=f(0.03, -0.04, -np.sqrt(1 - 0.05**2)),
+              base_height=jnp.float32(0.65), base_height_target=jnp.float32(0.66), feet_height=f(
+                  0.03, 0.12), feet_vel=f(0.1, 0.2, 0.0, 0.3).reshape(2, 2), contact=f(1.0, 1.0),
+              stance=f(0.0, 1.0), first_contact=f(1.0, 0.0), air_time=f(0.3, 0.2), stride_error=f(
+                  0.1, 0.5), penalty_force=f(0.05, 2.0,
+                                             0.0, 0.2), action=f(0.5, -0.2), last_action=f(
+                                                 0.3, 0.1), last_last_action=f(0.0, 0.2), dt=DT)
   base.update(overrides)
   return rewards.RewardInputs(**base)
 
@@ -82,9 +77,9 @@ def test_sixteen_paper_terms():
   """TERMS and RewardScales list exactly the paper's sixteen terms, with the paper's scales."""
   assert tuple(rewards.TERMS) == PAPER_TERMS
   s = rewards.RewardScales()
-  assert (s.joint_pos, s.tracking_lin_vel, s.tracking_ang_vel, s.dof_torques, s.dof_vel,
-          s.dof_acc, s.feet_air_time, s.feet_clearance, s.feet_contact_number, s.orientation,
-          s.collision, s.feet_slip, s.base_height, s.action_smoothness_1, s.action_smoothness_2,
+  assert (s.joint_pos, s.tracking_lin_vel, s.tracking_ang_vel, s.dof_torques, s.dof_vel, s.dof_acc,
+          s.feet_air_time, s.feet_clearance, s.feet_contact_number, s.orientation, s.collision,
+          s.feet_slip, s.base_height, s.action_smoothness_1, s.action_smoothness_2,
           s.torque_rate) == (3.5, 1.5, 1.4, -2e-3, -5e-4, -1e-7, 2.0, 2.0, 1.2, 1.0, -1.0, -5e-2,
                              0.2, -0.1, -0.1, -2e-4)
 
@@ -130,14 +125,15 @@ def _random_batch(n: int, seed: int) -> rewards.RewardInputs:
   bit = lambda *shape: rng.integers(0, 2, (n, *shape)).astype(np.float32)
   uni = lambda lo, hi, *shape: rng.uniform(lo, hi, (n, *shape)).astype(np.float32)
   return rewards.RewardInputs(
-      q_rel=nrm(12, s=0.3), q_ref=nrm(12, s=0.2), dq=nrm(20, s=3), last_dq=nrm(20, s=3),
-      torque=nrm(20, s=20), last_torque=nrm(20, s=20), torque_limit=uni(15, 60, 20),
-      command=np.concatenate([bit(1), nrm(3, s=0.5)], -1), base_lin_vel=nrm(3),
-      base_ang_vel=nrm(3), euler=nrm(3, s=0.3), gravity_proj=nrm(3), base_height=uni(0.3, 0.8),
-      base_height_target=np.full((n,), 0.66, np.float32), feet_height=uni(0, 0.2, 2),
-      feet_vel=nrm(2, 2), contact=bit(2), stance=bit(2), first_contact=bit(2),
-      air_time=uni(0, 0.32, 2), stride_error=nrm(2, s=0.2), penalty_force=np.abs(nrm(4, s=5)),
-      action=nrm(12), last_action=nrm(12), last_last_action=nrm(12), dt=None)
+      q_rel=nrm(12, s=0.3), q_ref=nrm(12, s=0.2), dq=nrm(20, s=3), last_dq=nrm(20, s=3), torque=nrm(
+          20, s=20), last_torque=nrm(20, s=20), torque_limit=uni(15, 60, 20),
+      command=np.concatenate([bit(1), nrm(3, s=0.5)],
+                             -1), base_lin_vel=nrm(3), base_ang_vel=nrm(3), euler=nrm(3, s=0.3),
+      gravity_proj=nrm(3), base_height=uni(0.3, 0.8), base_height_target=np.full(
+          (n,), 0.66, np.float32), feet_height=uni(0, 0.2, 2),
+      feet_vel=nrm(2, 2), contact=bit(2), stance=bit(2), first_contact=bit(2), air_time=uni(
+          0, 0.32, 2), stride_error=nrm(2, s=0.2), penalty_force=np.abs(nrm(
+              4, s=5)), action=nrm(12), last_action=nrm(12), last_last_action=nrm(12), dt=None)
 
 
 def test_signs_over_random_inputs():
@@ -161,6 +157,7 @@ def test_signs_over_random_inputs():
 
 def test_reward_terms_skips_zero_scales(monkeypatch):
   """A zero scale removes the term: no key, and its function is never called (nothing traced)."""
+
   def boom(x, p):
     raise AssertionError("zero-scale term was evaluated")
 
@@ -204,15 +201,15 @@ def test_tracking_boost_falls_to_the_paper_scales():
                                  curricula=False)
     chex.assert_trees_all_close(paper, full, rtol=1e-6)
     for name in PAPER_TERMS:
-      want = full[name] * (factor if name in boosted else 1.0) * (
-          ramp if name in boost.ramped_terms else 1.0)
+      want = full[name] * (factor if name in boosted else 1.0) * (ramp if name in boost.ramped_terms
+                                                                  else 1.0)
       np.testing.assert_allclose(terms[name], want, rtol=1e-6, err_msg=f"{name} at {steps}")
 
 
 def test_total_reward_only_positive_clip():
   """total_reward sums the terms; only_positive clips a negative sum to 0 and leaves positives."""
-  negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}   # sum -0.6
-  positive = {"a": jnp.float32(-0.1), "b": jnp.float32(0.4)}   # sum 0.3
+  negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}  # sum -0.6
+  positive = {"a": jnp.float32(-0.1), "b": jnp.float32(0.4)}  # sum 0.3
   clip = dataclasses.replace(P, only_positive=True)
   raw = dataclasses.replace(P, only_positive=False)
   assert float(rewards.total_reward(negative, clip)) == 0.0

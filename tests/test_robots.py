@@ -19,10 +19,8 @@ import pytest
 
 from mash.analysis import robot_check
 from mash.sim import env as env_lib
-from mash.sim import geometry
+from mash.sim import env_config, geometry, robots
 from mash.sim import layout as layout_lib
-from mash.sim import robots
-from mash.sim import env_config
 from mash.sim import model as model_lib
 
 ROBOTS = robots.names()
@@ -36,8 +34,10 @@ def _t1_table() -> dict:
 def test_the_shipped_robots():
   assert ROBOTS == ("berkeley_humanoid", "booster_t1", "unitree_g1", "unitree_h1")
   shapes = {n: tuple(len(l.joints) for l in robots.load(n).limbs) for n in ROBOTS}
-  assert shapes == {"berkeley_humanoid": (6, 6), "booster_t1": (6, 6, 4, 4),
-                    "unitree_g1": (6, 6, 4, 4), "unitree_h1": (5, 5, 4, 4)}
+  assert shapes == {
+      "berkeley_humanoid": (6, 6), "booster_t1": (6, 6, 4, 4), "unitree_g1": (6, 6, 4, 4),
+      "unitree_h1": (5, 5, 4, 4)
+  }
 
 
 @pytest.mark.parametrize("name", ROBOTS)
@@ -57,14 +57,17 @@ def test_robot_file_builds_with_its_home_pose_on_the_floor(name):
     np.testing.assert_allclose(model.dof_armature[dofs], spec.armature)
   else:  # the MJCF's own, joint by joint
     raw = mujoco.MjModel.from_xml_path(str(robots.mjcf_file(spec)))
-    np.testing.assert_allclose(model.dof_armature[dofs],
-                               [raw.dof_armature[raw.jnt_dofadr[raw.joint(j).id]]
-                                for j in spec.joints])
+    np.testing.assert_allclose(
+        model.dof_armature[dofs],
+        [raw.dof_armature[raw.jnt_dofadr[raw.joint(j).id]] for j in spec.joints])
   data = mujoco.MjData(model)
   data.qpos[:] = model.key("home").qpos
   mujoco.mj_kinematics(model, data)
-  soles = [model.geom(f"{side}_sole_{k}").id for side in ("left", "right")
-           for k in range(len(spec.sole_points[0]))]
+  soles = [
+      model.geom(f"{side}_sole_{k}").id
+      for side in ("left", "right")
+      for k in range(len(spec.sole_points[0]))
+  ]
   lowest = data.geom_xpos[soles, 2].min() - spec.sole_radius
   assert abs(lowest) < 2e-3, lowest
   for joint in spec.joints:
@@ -145,10 +148,10 @@ BAD_BERKELEY = [
      "limb group 'arms' \\(drop it\\)"),
     ("contact.sole_points.right", [[0.0, 0.0, 0.0]], "contact.sole_points: the left foot has 4 "
      "points, the right 1; give each foot as many"),
-    ("groups.legs.roles", ["hip_yaw", "hip_roll", "knee_pitch", "ankle_pitch"],
-     "groups.legs.roles has no 'hip_pitch'"),
-    ("groups.legs.roles", ["hip_pitch", "knee_pitch", "ankle_pitch"],
-     "groups.legs.roles must name 4 to 7 roles"),
+    ("groups.legs.roles", ["hip_yaw", "hip_roll", "knee_pitch",
+                           "ankle_pitch"], "groups.legs.roles has no 'hip_pitch'"),
+    ("groups.legs.roles", ["hip_pitch", "knee_pitch",
+                           "ankle_pitch"], "groups.legs.roles must name 4 to 7 roles"),
 ]
 
 
@@ -170,8 +173,8 @@ def test_a_misnamed_joint_is_caught_when_the_file_is_read(tmp_path):
   """A name the MJCF lacks stops ``robots.load`` (not the model build): one line naming the
   file, the field, the limb and the role; ``check_config`` passes it on before any work."""
   path = tmp_path / "typo.toml"
-  path.write_text(robots.robot_file("booster_t1").read_text().replace('"Left_Knee_Pitch"',
-                                                                      '"Left_Knee_Pich"'))
+  path.write_text(
+      robots.robot_file("booster_t1").read_text().replace('"Left_Knee_Pitch"', '"Left_Knee_Pich"'))
   message = (f"robot file '{path}': limb 'left_leg' joints.knee_pitch: joint 'Left_Knee_Pich' "
              "is not in the model")
   with pytest.raises(robots.SpecError, match=message) as e:
@@ -185,12 +188,15 @@ def test_a_task_needing_arms_is_refused_on_a_legs_only_robot(tmp_path):
   """``armswing`` on a robot without arms: one error line naming the missing group before any
   folder is made; ``bipedal`` builds its layout."""
   cfg = env_config.EnvConfig(robot="berkeley_humanoid", task="armswing")
-  with pytest.raises(ValueError, match="task 'armswing' needs limb group 'arms', which robot "
-                                       "'berkeley_humanoid' does not have: train 'bipedal'"):
+  with pytest.raises(
+      ValueError, match="task 'armswing' needs limb group 'arms', which robot "
+      "'berkeley_humanoid' does not have: train 'bipedal'"):
     env_config.check_config(cfg)
-  proc = subprocess.run([sys.executable, "-m", "experiments.armswing", "--robot",
-                         "berkeley_humanoid", "--preset", "smoke", "--out", str(tmp_path / "run")],
-                        capture_output=True, text=True, cwd=ROOT, timeout=120)
+  proc = subprocess.run([
+      sys.executable, "-m", "experiments.armswing", "--robot", "berkeley_humanoid", "--preset",
+      "smoke", "--out",
+      str(tmp_path / "run")
+  ], capture_output=True, text=True, cwd=ROOT, timeout=120)
   assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
   assert proc.stderr.startswith("error: env.task 'armswing' needs limb group 'arms'")
   assert not (tmp_path / "run").exists()
@@ -207,12 +213,12 @@ def test_layout_sizes_follow_the_robots_limbs(name):
     for kicks in (False, True):
       cfg = env_config.EnvConfig(robot=name, task=task)
       if kicks:
-        cfg = dataclasses.replace(cfg, randomization=dataclasses.replace(
-            cfg.randomization, kick_velocity=(0.1, 1.0)))
+        cfg = dataclasses.replace(
+            cfg, randomization=dataclasses.replace(cfg.randomization, kick_velocity=(0.1, 1.0)))
       lay = layout_lib.build(spec, cfg)
       acting = ("legs",) if task == "bipedal" else ("legs", "arms")
-      assert {g: lay.actor[g].size for g in lay.actor} == {
-          g: 3 * len(spec.limbs_of(g)[0].joints) + 12 + 2 for g in acting}
+      assert {g: lay.actor[g].size for g in lay.actor
+             } == {g: 3 * len(spec.limbs_of(g)[0].joints) + 12 + 2 for g in acting}
       assert lay.critic.size == 4 * len(spec.joints) + 26 + 3 * kicks
 
 
@@ -282,8 +288,8 @@ def test_a_mirrored_axis_left_out_of_the_file_is_named():
   model.qpos0[model.jnt_qposadr[knee]] *= -1
   model.key_qpos[0, model.jnt_qposadr[knee]] *= -1
   wrong = geometry.mirror_mismatches(model, spec)
-  assert len(wrong) == 1 and wrong[0].startswith("roles.knee_pitch.mirror is +1") and (
-      "expected -1" in wrong[0])
+  assert len(wrong) == 1 and wrong[0].startswith("roles.knee_pitch.mirror is +1") and ("expected -1"
+                                                                                       in wrong[0])
   with pytest.raises(robots.SpecError, match="roles.knee_pitch.mirror is \\+1"):
     geometry.check_mirror(model, spec)
   cfg = env_config.EnvConfig()
@@ -320,7 +326,7 @@ def test_a_users_robot_file_by_path_needs_no_package_edit(tmp_path):
   numbers reach the env; an unknown name or a missing file is one error naming the choices."""
   path = tmp_path / "my_robot.toml"
   text = robots.robot_file("booster_t1").read_text().replace('name = "booster_t1"',
-                                                              'name = "my_robot"')
+                                                             'name = "my_robot"')
   path.write_text(text.replace("fall_height = 0.4 ", "fall_height = 0.35 "))
   spec = robots.load(str(path))
   assert spec.name == "my_robot" and spec.fall_height == 0.35
@@ -328,8 +334,9 @@ def test_a_users_robot_file_by_path_needs_no_package_edit(tmp_path):
   lay = layout_lib.build(spec, env_config.EnvConfig(robot=str(path)))
   assert lay.joints == robots.load("booster_t1").joints
   for bad in ("t2", str(tmp_path / "missing.toml")):
-    with pytest.raises(ValueError, match=f"robot '{bad}' is unknown: expected one of "
-                                         f"{', '.join(ROBOTS)} or the path of a robot file"):
+    with pytest.raises(
+        ValueError, match=f"robot '{bad}' is unknown: expected one of "
+        f"{', '.join(ROBOTS)} or the path of a robot file"):
       env_config.check_config(env_config.EnvConfig(robot=bad))
   (tmp_path / "broken.toml").write_text("name = \n")
   with pytest.raises(ValueError, match="is not valid TOML"):
@@ -339,8 +346,9 @@ def test_a_users_robot_file_by_path_needs_no_package_edit(tmp_path):
 def test_robot_numbers_fill_only_what_the_config_leaves_open():
   g1 = robots.load("unitree_g1")
   filled = env_config.with_robot_numbers(env_config.EnvConfig(robot="unitree_g1"), g1)
-  assert (filled.fall_height, filled.swing_amplitude, filled.arm_swing_amplitude) == (
-      g1.fall_height, g1.swing_amplitude, g1.arm_swing_amplitude)
+  assert (filled.fall_height, filled.swing_amplitude,
+          filled.arm_swing_amplitude) == (g1.fall_height, g1.swing_amplitude,
+                                          g1.arm_swing_amplitude)
   assert filled.randomization.push_force == g1.push_force == (-21.0, 21.0)
   assert filled.randomization.push_torque == g1.push_torque
   assert filled.reward_params.feet_height_target == g1.feet_height_target
@@ -350,8 +358,8 @@ def test_robot_numbers_fill_only_what_the_config_leaves_open():
   t1_cfg = env_config.with_robot_numbers(env_config.EnvConfig(), t1)
   assert (t1_cfg.fall_height, t1_cfg.swing_amplitude, t1_cfg.arm_swing_amplitude,
           t1_cfg.randomization.push_force, t1_cfg.randomization.push_torque,
-          t1_cfg.reward_params.feet_height_target) == (0.4, 0.25, 0.3, (-20.0, 20.0),
-                                                       (-5.0, 5.0), 0.04)
+          t1_cfg.reward_params.feet_height_target) == (0.4, 0.25, 0.3, (-20.0, 20.0), (-5.0, 5.0),
+                                                       0.04)
 
 
 @pytest.mark.slow
@@ -369,15 +377,17 @@ def test_each_robot_steps_under_mjx_with_its_file_alone(name):
   env = env_lib.MashEnv(cfg)
   lay = layout_lib.build(spec, cfg)
   assert env.n_joints == len(spec.joints) and env.action_size == len(lay.controlled)
-  assert {g.name: (g.n_agents, g.obs_dim) for g in env.agent_groups} == {
-      g: (2, lay.actor[g].size) for g in lay.actor}
+  assert {g.name: (g.n_agents, g.obs_dim) for g in env.agent_groups
+         } == {g: (2, lay.actor[g].size) for g in lay.actor}
   root = env.mj_model.body(spec.root_body).id
 
   def run(key):
     state = env.reset(key)
+
     def body(s, _):
       s = env.step(s, jnp.zeros((env.action_size,)))
       return s, (s.done, s.pipeline_state.xpos[root, 2], s.reward)
+
     return jax.lax.scan(body, state, None, length=25)[1]
 
   done, height, reward = jax.jit(run)(jax.random.PRNGKey(0))
@@ -398,7 +408,7 @@ def test_robot_flag_stores_a_file_absolute_and_deployment_checks_the_name(tmp_pa
   cfg = policy.load_config(shipped, robot=str(tmp_path / "my.toml"))
   assert cfg.env.robot == str(tmp_path / "my.toml")
   with pytest.raises(policy.RunError, match="is robot 'unitree_g1', but .* was trained on "
-                                            "'booster_t1'"):
+                     "'booster_t1'"):
     policy.load_config(shipped, robot="unitree_g1")
 
 
@@ -412,8 +422,8 @@ def test_robot_check_command(tmp_path, capsys):
   record = json.loads((tmp_path / "booster_t1_check.json").read_text())
   assert record["robot"] == "booster_t1" and len(record["clearance_cm"]) == 2
   typo = tmp_path / "typo.toml"
-  typo.write_text(robots.robot_file("booster_t1").read_text().replace('"Right_Hip_Roll"',
-                                                                      '"Right_Hip_Rol"'))
+  typo.write_text(
+      robots.robot_file("booster_t1").read_text().replace('"Right_Hip_Roll"', '"Right_Hip_Rol"'))
   with pytest.raises(SystemExit) as e:
     cli.main(["check", str(typo), "--no-mjx", "--out", str(tmp_path)])
   err = capsys.readouterr().err.strip()

@@ -21,8 +21,9 @@ def test_the_default_battery_is_the_issues_list():
   assert [c.name for c in robustness.conditions(cfg)] == [
       "kick 0.25 m/s", "kick 0.5 m/s", "kick 0.75 m/s", "kick 1 m/s", "friction 0.1-0.2",
       "friction 0.2-0.3", "friction 0.3-1.2", "torso mass -20 %", "torso mass +20 %",
-      "motor strength 80 % (all)", "motor strength 60 % (left leg)", "IMU noise",
-      "encoder noise", "latency 0 ms", "latency 20 ms", "latency 40 ms"]
+      "motor strength 80 % (all)", "motor strength 60 % (left leg)", "IMU noise", "encoder noise",
+      "latency 0 ms", "latency 20 ms", "latency 40 ms"
+  ]
   assert cfg.command_vx == 0.4 and cfg.kick_directions == 8 and cfg.episodes % 8 == 0
   assert {c.group for c in robustness.conditions(cfg)} == set(robustness.GROUPS)
 
@@ -32,8 +33,8 @@ def test_episodes_hand_values():
   condition weakens only the left leg's joints, latency in whole control steps, the friction
   draws inside their band and the same for the same seed."""
   cfg = robustness.BatteryConfig(episodes=4, kick_directions=4, kick_sizes=(0.5,),
-                                 friction_bands=((0.2, 0.3),), torso_mass=(0.2,),
-                                 latency_ms=(20.0, 30.0))
+                                 friction_bands=((0.2, 0.3),), torso_mass=(0.2,), latency_ms=(20.0,
+                                                                                              30.0))
   conds = robustness.conditions(cfg)
   left = robustness.left_leg_mask(robots.load("booster_t1"))
   assert left.sum() == 6 and left[:6].all()  # the T1's left leg comes first in spec order
@@ -47,8 +48,7 @@ def test_episodes_hand_values():
   one_leg = [i for i, c in enumerate(conds) if c.name.endswith("(left leg)")][0]
   np.testing.assert_allclose(eps.strength[4 * one_leg], np.where(left, 0.6, 1.0))
   assert list(eps.delay[-8:]) == [1] * 4 + [2] * 4  # 20 ms, 30 ms -> round(1.5) = 2 steps
-  np.testing.assert_array_equal(robustness.episodes(conds, cfg, left, 0.02).friction,
-                                eps.friction)
+  np.testing.assert_array_equal(robustness.episodes(conds, cfg, left, 0.02).friction, eps.friction)
 
 
 def test_summarize_hand_values():

@@ -32,6 +32,7 @@ import pytest
 from mash.rl import losses
 from mash.rl import networks as nets
 from mash.rl.config import TrainConfig
+
 from toy_env import make_toy_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,14 +55,16 @@ def setup():
   params = networks.init(jax.random.PRNGKey(0))
   obs = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(1), M)).obs
   keys = iter(jax.random.split(jax.random.PRNGKey(2), 8))
-  actions = {g.name: jax.random.normal(next(keys), (M, g.n_agents, g.act_dim))
-             for g in env.agent_groups}
+  actions = {
+      g.name: jax.random.normal(next(keys), (M, g.n_agents, g.act_dim)) for g in env.agent_groups
+  }
   dists = networks.policy_apply(params, None, obs)
-  log_probs = nets.per_agent(env.agent_groups, {
-      g.name: nets.gaussian_log_prob(dists[g.name], actions[g.name]) for g in env.agent_groups})
+  log_probs = nets.per_agent(
+      env.agent_groups,
+      {g.name: nets.gaussian_log_prob(dists[g.name], actions[g.name]) for g in env.agent_groups})
   values = networks.value_apply(params, None, obs["critic"])
-  return dict(env=env, config=config, networks=networks, params=params, obs=obs,
-              actions=actions, log_probs=log_probs, values=values)
+  return dict(env=env, config=config, networks=networks, params=params, obs=obs, actions=actions,
+              log_probs=log_probs, values=values)
 
 
 def _grad(fn, params):
@@ -90,9 +93,10 @@ def test_advantage_k_weighs_agent_k_log_prob(setup, k):
   chex.assert_trees_all_close(got, want, atol=1e-6, rtol=1e-5)
   # The check can tell agents apart: another agent's term has another gradient.
   other_group, other_member = _agent_order(s["env"].agent_groups)[(k + 1) % n]
-  other = _grad(lambda p: -jnp.mean(nets.gaussian_log_prob(
-      s["networks"].policy_apply(p, None, s["obs"])[other_group],
-      s["actions"][other_group])[:, other_member]), s["params"])
+  other = _grad(
+      lambda p: -jnp.mean(
+          nets.gaussian_log_prob(s["networks"].policy_apply(p, None, s["obs"])[other_group], s[
+              "actions"][other_group])[:, other_member]), s["params"])
   diff = jax.tree.map(lambda a, b: float(jnp.max(jnp.abs(a - b))), want, other)
   assert max(jax.tree.leaves(diff)) > 1e-3
 
@@ -153,10 +157,11 @@ TWO_DEVICE_GRADIENTS = textwrap.dedent("""
 
 
 def test_two_devices_average_gradients_to_the_whole_minibatch():
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-             PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests"),
-                                        os.environ.get("PYTHONPATH", "")]),
-             JAX_PLATFORMS="cpu")
+  env = dict(
+      os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+      PYTHONPATH=os.pathsep.join([str(ROOT),
+                                  str(ROOT / "tests"),
+                                  os.environ.get("PYTHONPATH", "")]), JAX_PLATFORMS="cpu")
   result = subprocess.run([sys.executable, "-c", TWO_DEVICE_GRADIENTS], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
   assert result.returncode == 0 and "OK" in result.stdout, result.stdout + result.stderr[-3000:]
@@ -171,11 +176,10 @@ def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_
   and (converged) solver settings, the MJX state copied in (warm start included), randomization
   off. The readings, the action the exported policy returns, the gait clock and the state after
   each control step must agree."""
-  from mash.sim import env as env_lib
   from mash.analysis import evaluation
-  from mash.deploy import export
+  from mash.deploy import export, sim2sim
   from mash.deploy import policy as policy_lib
-  from mash.deploy import sim2sim
+  from mash.sim import env as env_lib
 
   policy = policy_lib.load(smoke_run)
   eval_cfg = evaluation.EvalConfig(randomization=False, episode_s=1.0, num_episodes=1)
@@ -196,9 +200,11 @@ def test_sim2sim_sensors_and_pd_loop_match_mjx_on_the_same_state(smoke_run, tmp_
 
   onnx_path = export.export_policy(policy, tmp_path / "policy.onnx")
   dep = sim2sim.Deployment.from_metadata(export.read_metadata(onnx_path))
-  robot = sim2sim.NativeRobot(env.spec, dep, sim2sim.Sim2SimConfig(
-      sim_dt=phys.sim_dt, iterations=phys.iterations, ls_iterations=phys.ls_iterations,
-      integrator=phys.integrator, full_collision=False))
+  robot = sim2sim.NativeRobot(
+      env.spec, dep,
+      sim2sim.Sim2SimConfig(sim_dt=phys.sim_dt, iterations=phys.iterations,
+                            ls_iterations=phys.ls_iterations, integrator=phys.integrator,
+                            full_collision=False))
   controller = sim2sim.Controller(export.onnx_session(onnx_path), dep)
   d = state.pipeline_state
   robot.data.qpos[:] = np.asarray(d.qpos, np.float64)

@@ -22,11 +22,9 @@ import numpy as np
 import pytest
 
 from mash.analysis import robustness
+from mash.deploy import native_battery, sim2sim
 from mash.runs import loop as runs
-from mash.deploy import native_battery
-from mash.deploy import sim2sim
-from mash.sim import geometry
-from mash.sim import robots
+from mash.sim import geometry, robots
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,9 +54,8 @@ def test_native_battery_on_a_shipped_policy(tmp_path):
   """The battery in MuJoCo C: the MJX battery's conditions and row format, the same rows whatever
   the worker count (each episode fixed by its index); a 10 m/s kick fells the robot, none does
   not. Tiny: every group once or twice, 2 episodes (2 kick directions) x 1.5 s, kick at 0.5 s."""
-  cfg = robustness.BatteryConfig(episode_s=1.5, episodes=2, kick_at_s=0.5,
-                                 kick_sizes=(0.0, 10.0), kick_directions=2,
-                                 friction_bands=((0.2, 0.3),), torso_mass=(0.2,),
+  cfg = robustness.BatteryConfig(episode_s=1.5, episodes=2, kick_at_s=0.5, kick_sizes=(0.0, 10.0),
+                                 kick_directions=2, friction_bands=((0.2, 0.3),), torso_mass=(0.2,),
                                  latency_ms=(20.0,))
   onnx = robots.ROBOT_DIR.parent / "policies" / "t1_bipedal_mash" / "policy.onnx"
   spec = robots.load("booster_t1")
@@ -85,11 +82,12 @@ def test_robustness_flags(tmp_path, capsys):
   """--robustness runs its own conditions in MuJoCo C: a flag it has no use for is one error
   line, and so are --workers without it and a bad --episodes."""
   from experiments import sim2sim as cli
-  for argv, expected in (
-      (["--robustness", "--video", "x.mp4", "--no-mjx"], "drop --video, --no-mjx"),
-      (["--robustness", "--command-vx", "0"], "drop --command-vx"),
-      (["--robustness", "--episodes", "6"], "--episodes 6 must be a multiple of kick_directions"),
-      (["--workers", "2"], "--workers and --battery-seed go with --robustness")):
+  for argv, expected in ((["--robustness", "--video", "x.mp4", "--no-mjx"],
+                          "drop --video, --no-mjx"), (["--robustness", "--command-vx",
+                                                       "0"], "drop --command-vx"),
+                         (["--robustness", "--episodes",
+                           "6"], "--episodes 6 must be a multiple of kick_directions"),
+                         (["--workers", "2"], "--workers and --battery-seed go with --robustness")):
     with pytest.raises(SystemExit) as e:
       cli.main(["--run", str(tmp_path), *argv])
     assert e.value.code == 2
@@ -101,9 +99,11 @@ def test_sim2sim_report(run_copy, capsys):
   from experiments import sim2sim as cli
   # A stand-in MJX evaluation: the report must carry its numbers into the table.
   (run_copy / "eval").mkdir()
-  fake = {"S_action": 0.125, "S_action_2nd": 0.0625, "S_torso": 0.01, "C_limb": 0.5,
-          "fall_rate": 0.25, "forward_speed": 0.375, "command_vx": 0.4, "T_conv": 3.0,
-          "eval_config": {"num_episodes": 2, "episode_s": 1.0, "randomization": True}}
+  fake = {
+      "S_action": 0.125, "S_action_2nd": 0.0625, "S_torso": 0.01, "C_limb": 0.5, "fall_rate": 0.25,
+      "forward_speed": 0.375, "command_vx": 0.4, "T_conv": 3.0,
+      "eval_config": {"num_episodes": 2, "episode_s": 1.0, "randomization": True}
+  }
   (run_copy / "eval" / "metrics.json").write_text(json.dumps(fake))
   cli.main(["--run", str(run_copy), "--episodes", "1", "--seconds", "2"])
   text = capsys.readouterr().out
@@ -111,8 +111,7 @@ def test_sim2sim_report(run_copy, capsys):
 
   report = json.loads((run_copy / "sim2sim" / "report.json").read_text())
   for key in ("run", "onnx", "checkpoint_iteration", "command_vx", "episodes", "episode_s",
-              "physics", "mujoco", "mjx", "mjx_source", "per_episode", "wall_s",
-              "realtime_factor"):
+              "physics", "mujoco", "mjx", "mjx_source", "per_episode", "wall_s", "realtime_factor"):
     assert key in report, key
   mj = report["mujoco"]
   for key in ("S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed",
@@ -142,9 +141,11 @@ def test_sim2sim_video(run_copy, tmp_path, skip_for_missing_gl):
   video = tmp_path / "clip.mp4"
   env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
   env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-  r = subprocess.run([sys.executable, "-m", "experiments.sim2sim", "--run", str(run_copy),
-                      "--episodes", "1", "--seconds", "0.3", "--video", str(video), "--no-mjx"],
-                     cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+  r = subprocess.run([
+      sys.executable, "-m", "experiments.sim2sim", "--run",
+      str(run_copy), "--episodes", "1", "--seconds", "0.3", "--video",
+      str(video), "--no-mjx"
+  ], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
   assert r.returncode == 0, r.stderr[-2000:]
   skipped = [l for l in r.stdout.splitlines() if l.startswith("video skipped: ")]
   if skipped:  # no EGL/OSMesa system library here: the line says which failed

@@ -10,12 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mash.sim import env as env_lib
 from mash.runs import experiment
-from mash.sim import layout
-from mash.sim import robots
-from mash.sim import tasks
-from mash.sim import env_config
+from mash.sim import env as env_lib
+from mash.sim import env_config, layout, robots, tasks
 
 T1 = robots.load("booster_t1")
 
@@ -35,7 +32,7 @@ def test_the_two_tasks_as_the_paper_has_them():
   assert tasks.get("bipedal").acting == ("legs",) and not tasks.get("bipedal").arm_swing
   assert tasks.get("armswing").acting == ("legs", "arms") and tasks.get("armswing").arm_swing
   with pytest.raises(ValueError, match=r"^task 'swim' is unknown; expected one of bipedal, "
-                                       r"armswing$"):
+                     r"armswing$"):
     tasks.get("swim")
 
 
@@ -49,8 +46,10 @@ def test_a_new_task_is_one_entry(arms_free):
   # The reference: the legs swing, the arms (no swing reference in this task) hold still.
   env = env_lib.MashEnv(cfg.env)
   q_ref, _ = env.gait(jnp.asarray(0.25), jnp.asarray(0.0))
-  arms = np.array([i for i, j in enumerate(lay.joints)
-                   if any(j in l.joints for l in T1.limbs if l.group == "arms")])
+  arms = np.array([
+      i for i, j in enumerate(lay.joints)
+      if any(j in l.joints for l in T1.limbs if l.group == "arms")
+  ])
   legs = np.setdiff1d(np.arange(lay.n_joints), arms)
   assert np.all(np.asarray(q_ref)[arms] == 0.0) and np.any(np.asarray(q_ref)[legs] != 0.0)
   swing = env_lib.MashEnv(dataclasses.replace(cfg.env, task="armswing"))

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from mash.sim import env as env_lib
 from mash.runs import experiment
-from mash.sim import randomize
+from mash.sim import env as env_lib
 from mash.sim import model as model_lib
+from mash.sim import randomize
 
 DR_OFF = randomize.DomainRandConfig(enabled=False)
 STEPS = 10  # control steps (0.2 s) of the agreement test
@@ -53,39 +53,45 @@ def test_warp_without_warp_is_one_config_error_with_the_install_hint(monkeypatch
     ("env.physics.warp_max_envs=0", "env.physics.warp_max_envs must be in [1, 1048576] envs"),
 ])
 def test_a_bad_implementation_setting_is_refused(override, words):
-  with pytest.raises(experiment.ConfigError, match=r"^" + words.replace("[", r"\[")
-                     .replace("]", r"\]")):
+  with pytest.raises(experiment.ConfigError,
+                     match=r"^" + words.replace("[", r"\[").replace("]", r"\]")):
     experiment.make_config("bipedal", overrides=[override])
 
 
 def test_a_batch_larger_than_the_warp_contact_buffer_is_refused(monkeypatch):
   """Warp's contact buffer is sized for warp_max_envs: a bigger batch would drop contacts."""
   monkeypatch.setattr(model_lib, "warp_installed", lambda: True)
-  with pytest.raises(experiment.ConfigError, match=r"warp_max_envs=256 must be at least the envs "
-                     r"stepped at once, train.num_envs x seeds = 512"):
-    experiment.make_config("bipedal", preset="cpu", overrides=[
-        "train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=256"])
-  experiment.make_config("bipedal", preset="cpu", overrides=[
-      "train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=512"])
+  with pytest.raises(
+      experiment.ConfigError, match=r"warp_max_envs=256 must be at least the envs "
+      r"stepped at once, train.num_envs x seeds = 512"):
+    experiment.make_config(
+        "bipedal", preset="cpu",
+        overrides=["train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=256"])
+  experiment.make_config(
+      "bipedal", preset="cpu",
+      overrides=["train.num_envs=512", "env.physics.impl=warp", "env.physics.warp_max_envs=512"])
 
 
 @pytest.mark.skipif(model_lib.warp_installed(), reason="Warp is installed here")
 def test_the_cli_without_warp_prints_one_line_and_nothing_else():
   """No MJX probe lines ('Failed to import warp') on a default install: the command that asks for
   Warp prints exactly one line, the error, and exits 2."""
-  out = subprocess.run([sys.executable, "-m", "experiments.bipedal", "--set",
-                        "env.physics.impl=warp"], capture_output=True, text=True, timeout=120)
+  out = subprocess.run(
+      [sys.executable, "-m", "experiments.bipedal", "--set", "env.physics.impl=warp"],
+      capture_output=True, text=True, timeout=120)
   assert out.returncode == 2 and out.stdout == "", out
   assert out.stderr.splitlines() == [
       "error: env.physics.impl 'warp' needs MuJoCo Warp, which is not installed here: "
-      'pip install -e ".[warp]" (or leave impl at jax)'], out.stderr
+      'pip install -e ".[warp]" (or leave impl at jax)'
+  ], out.stderr
 
 
 # --------------------------------------------------------------------------------- with Warp
 @pytest.fixture(scope="module")
 def warp():
-  return pytest.importorskip("warp", reason="MuJoCo Warp is not installed here (an optional extra: "
-                             'pip install -e ".[warp]"); the default install runs the JAX physics')
+  return pytest.importorskip(
+      "warp", reason="MuJoCo Warp is not installed here (an optional extra: "
+      'pip install -e ".[warp]"); the default install runs the JAX physics')
 
 
 def _rollout(impl: str, steps: int) -> list:
@@ -155,8 +161,9 @@ def test_per_env_model_fields_reach_warp_under_vmap(warp):
   steps of 5 ms: a free fall (no contact yet) in which semi-implicit Euler drops the robot
   g dt^2 (1 + ... + 10) = g * 25e-6 * 55 m = 13.49 mm, 6.88 mm and 0."""
   env = env_lib.make_env("bipedal", "mash", physics=_physics("warp"))
-  params = jax.vmap(lambda k: randomize.sample(k, env.config.randomization, env.mj_model.nbody,
-                                               env.n_joints))(jax.random.split(jax.random.key(0), 3))
+  params = jax.vmap(
+      lambda k: randomize.sample(k, env.config.randomization, env.mj_model.nbody, env.n_joints))(
+          jax.random.split(jax.random.key(0), 3))
   params = params.replace(gravity=jnp.array([9.81, 5.0, 0.0]))
   data = jax.vmap(lambda _: env.initial_data())(jnp.arange(3))
   z0 = float(data.qpos[0, 2]) + 0.05

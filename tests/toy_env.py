@@ -46,8 +46,8 @@ class Limb(NamedTuple):
   amplitude: float
 
 
-LEGS = (Limb('left_leg', 'legs', 2, 0.0, 0.8), Limb('right_leg', 'legs', 2, 0.5, 0.8))
-ARMS = (Limb('left_arm', 'arms', 1, 0.5, 0.5), Limb('right_arm', 'arms', 1, 0.0, 0.5))
+LEGS = (Limb("left_leg", "legs", 2, 0.0, 0.8), Limb("right_leg", "legs", 2, 0.5, 0.8))
+ARMS = (Limb("left_arm", "arms", 1, 0.5, 0.5), Limb("right_arm", "arms", 1, 0.0, 0.5))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,34 +106,36 @@ class ToyEnv:
     config: task constants.
   """
 
-  def __init__(self, limbs: tuple[Limb, ...], partition: str = 'mash',
+  def __init__(self, limbs: tuple[Limb, ...], partition: str = "mash",
                config: ToyConfig = ToyConfig()):
-    if partition not in ('mash', 'ppo'):
+    if partition not in ("mash", "ppo"):
       raise ValueError(f"partition must be 'mash' or 'ppo', got {partition!r}.")
     self.config = config
     self.partition = partition
     self._limbs = limbs
     starts = np.cumsum([0] + [l.n_joints for l in limbs])
-    self._limb_index = tuple(tuple(range(int(s), int(s) + l.n_joints)) for s, l in zip(starts, limbs))
+    self._limb_index = tuple(
+        tuple(range(int(s),
+                    int(s) + l.n_joints)) for s, l in zip(starts, limbs))
     joints = int(starts[-1])
     self._amplitude = np.concatenate([np.full(l.n_joints, l.amplitude) for l in limbs])
     self._offset = np.concatenate([np.full(l.n_joints, l.phase_offset) for l in limbs])
     self._joint_shift = np.concatenate([np.arange(l.n_joints) * 0.5 * np.pi for l in limbs])
-    if partition == 'mash':
+    if partition == "mash":
       names = list(dict.fromkeys(l.group for l in limbs))
       groups = []
       for name in names:
         members = [i for i, l in enumerate(limbs) if l.group == name]
         n_joints = limbs[members[0]].n_joints
-        groups.append(AgentGroup(
-            name=name, members=tuple(limbs[i].name for i in members),
-            obs_dim=2 * n_joints + 2 + len(members), act_dim=n_joints,
-            action_index=tuple(self._limb_index[i] for i in members)))
+        groups.append(
+            AgentGroup(name=name, members=tuple(limbs[i].name for i in members),
+                       obs_dim=2 * n_joints + 2 + len(members), act_dim=n_joints,
+                       action_index=tuple(self._limb_index[i] for i in members)))
       self.agent_groups = tuple(groups)
     else:
-      self.agent_groups = (AgentGroup(
-          name='body', members=('body',), obs_dim=sum(2 * l.n_joints + 2 for l in limbs),
-          act_dim=joints, action_index=(tuple(range(joints)),)),)
+      self.agent_groups = (AgentGroup(name="body", members=("body",),
+                                      obs_dim=sum(2 * l.n_joints + 2 for l in limbs),
+                                      act_dim=joints, action_index=(tuple(range(joints)),)),)
     self.action_size = action_size(self.agent_groups)
     self.critic_obs_size = 2 * joints + 3
 
@@ -147,27 +149,32 @@ class ToyEnv:
     for limb, idx in zip(self._limbs, self._limb_index):
       idx = np.asarray(idx)
       angle = 2 * jnp.pi * (ps.phase + limb.phase_offset)
-      out.append(jnp.concatenate([ps.q[idx], ps.prev_action[idx],
-                                  jnp.stack([jnp.sin(angle), jnp.cos(angle)])]))
+      out.append(
+          jnp.concatenate([
+              ps.q[idx], ps.prev_action[idx],
+              jnp.stack([jnp.sin(angle), jnp.cos(angle)])
+          ]))
     return out
 
   def _obs(self, ps: ToyPipelineState) -> dict[str, jax.Array]:
     limb_obs = self._limb_obs(ps)
-    if self.partition == 'ppo':
-      obs = {'body': jnp.concatenate(limb_obs)[None]}
+    if self.partition == "ppo":
+      obs = {"body": jnp.concatenate(limb_obs)[None]}
     else:
       obs = {}
       for g in self.agent_groups:
         stacked = jnp.stack([limb_obs[[l.name for l in self._limbs].index(m)] for m in g.members])
         obs[g.name] = jnp.concatenate([stacked, jnp.eye(g.n_agents, dtype=stacked.dtype)], axis=-1)
-    obs['critic'] = self._critic_obs(ps)
+    obs["critic"] = self._critic_obs(ps)
     return obs
 
   def _critic_obs(self, ps: ToyPipelineState) -> jax.Array:
     angle = 2 * jnp.pi * ps.phase
     time_fraction = ps.t.astype(jnp.float32) / self.config.episode_length
-    return jnp.concatenate([ps.q, ps.prev_action,
-                            jnp.stack([jnp.sin(angle), jnp.cos(angle), time_fraction])])
+    return jnp.concatenate([
+        ps.q, ps.prev_action,
+        jnp.stack([jnp.sin(angle), jnp.cos(angle), time_fraction])
+    ])
 
   def reset(self, key: jax.Array) -> State:
     """Starts an episode at a random phase with the joints near their targets."""
@@ -175,12 +182,12 @@ class ToyEnv:
     phase = jax.random.uniform(phase_key, ())
     q = self._targets(phase) + self.config.init_noise * jax.random.normal(
         noise_key, (self.action_size,))
-    ps = ToyPipelineState(q=q, prev_action=jnp.zeros_like(q), phase=phase,
-                          t=jnp.zeros((), jnp.int32))
+    ps = ToyPipelineState(q=q, prev_action=jnp.zeros_like(q), phase=phase, t=jnp.zeros((),
+                                                                                       jnp.int32))
     obs = self._obs(ps)
     zero = jnp.zeros(())
-    metrics = {'reward/tracking': zero, 'reward/alive': zero, 'reward/smoothness': zero}
-    info = {'truncation': zero, 'next_critic_obs': obs['critic'], 'nan_reset': zero}
+    metrics = {"reward/tracking": zero, "reward/alive": zero, "reward/smoothness": zero}
+    info = {"truncation": zero, "next_critic_obs": obs["critic"], "nan_reset": zero}
     return State(pipeline_state=ps, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
   def step(self, state: State, action: jax.Array) -> State:
@@ -195,9 +202,9 @@ class ToyEnv:
     sq_err = jnp.square(q - self._targets(phase))
     limb_err = jnp.stack([jnp.sum(sq_err[np.asarray(idx)]) for idx in self._limb_index])
     terms = {
-        'reward/tracking': jnp.mean(jnp.exp(-limb_err / cfg.tracking_sigma)),
-        'reward/alive': jnp.asarray(cfg.alive, jnp.float32),
-        'reward/smoothness': cfg.smoothness * jnp.mean(jnp.square(a - ps.prev_action)),
+        "reward/tracking": jnp.mean(jnp.exp(-limb_err / cfg.tracking_sigma)),
+        "reward/alive": jnp.asarray(cfg.alive, jnp.float32),
+        "reward/smoothness": cfg.smoothness * jnp.mean(jnp.square(a - ps.prev_action)),
     }
     # A non-finite state is a blow-up: a fall with zero reward, the terminal obs zeroed.
     finite = jnp.all(jnp.isfinite(q))
@@ -215,13 +222,14 @@ class ToyEnv:
                              phase=restart_phase, t=jnp.zeros((), jnp.int32))
     ps_out = jax.tree.map(lambda r, n: jnp.where(done > 0, r, n), fresh, nxt)
     obs = self._obs(ps_out)
-    info = {'truncation': truncation,
-            'next_critic_obs': jnp.where(finite, self._critic_obs(nxt), 0.0),
-            'nan_reset': (~finite).astype(jnp.float32)}
+    info = {
+        "truncation": truncation, "next_critic_obs": jnp.where(finite, self._critic_obs(nxt), 0.0),
+        "nan_reset": (~finite).astype(jnp.float32)
+    }
     return State(pipeline_state=ps_out, obs=obs, reward=reward, done=done, metrics=terms, info=info)
 
 
-def make_toy_env(groups: str = 'legs', partition: str = 'mash',
+def make_toy_env(groups: str = "legs", partition: str = "mash",
                  config: ToyConfig = ToyConfig()) -> ToyEnv:
   """Builds the toy env.
 
@@ -233,7 +241,7 @@ def make_toy_env(groups: str = 'legs', partition: str = 'mash',
   Raises:
     ValueError: unknown ``groups`` or ``partition``.
   """
-  limbs = {'legs': LEGS, 'legs_arms': LEGS + ARMS}
+  limbs = {"legs": LEGS, "legs_arms": LEGS + ARMS}
   if groups not in limbs:
     raise ValueError(f"groups must be 'legs' or 'legs_arms', got {groups!r}.")
   return ToyEnv(limbs[groups], partition, config)

@@ -27,10 +27,13 @@ policy = policy_lib.load("mash/assets/policies/t1_bipedal_mash")
 physics = dataclasses.replace(policy.config.env.physics, iterations=iterations,
                               ls_iterations=ls_iterations)
 eval_cfg = evaluation.EvalConfig(num_episodes=n, friction=(lo, hi))
-env = env_lib.MashEnv(evaluation.eval_env_config(
-    dataclasses.replace(policy.config.env, physics=physics), eval_cfg))
+env = env_lib.MashEnv(
+    evaluation.eval_env_config(dataclasses.replace(policy.config.env, physics=physics), eval_cfg))
 traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
 alive = traj["alive"].min(axis=1) > 0
-print(json.dumps({"iterations": iterations, "ls_iterations": ls_iterations, "friction": [lo, hi],
-                  "episodes": n, "fall_rate": float(1 - alive.mean()),
-                  "forward_speed_survivors": float(traj["forward_velocity"][alive].mean())}))
+print(
+    json.dumps({
+        "iterations": iterations, "ls_iterations": ls_iterations, "friction": [lo, hi],
+        "episodes": n, "fall_rate": float(1 - alive.mean()),
+        "forward_speed_survivors": float(traj["forward_velocity"][alive].mean())
+    }))

@@ -12,7 +12,6 @@ import dataclasses
 import sys
 
 import mujoco
-import numpy as np
 
 from mash.sim import robots
 
@@ -29,7 +28,9 @@ def measure(spec):
   data.qpos[:] = model.key("home").qpos
   mujoco.mj_kinematics(model, data)
   root_z = data.xpos[model.body(spec.root_body).id][2]
-  low = min(sole_bottoms(model, data, spec, "left").min(), sole_bottoms(model, data, spec, "right").min())
+  low = min(
+      sole_bottoms(model, data, spec, "left").min(),
+      sole_bottoms(model, data, spec, "right").min())
   home_height = root_z - low
   left = spec.limbs_of("legs")[0]
   for role, k in spec.gait_reference.items():

@@ -25,14 +25,17 @@ def stand(name: str, kp_scale: float, roles=PITCH, seconds: float = 10.0):
   data = mujoco.MjData(m)
   data.qpos[:] = m.key("home").qpos
   mujoco.mj_kinematics(m, data)
-  soles = [g for g in range(m.ngeom)
-           if "sole" in (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "")]
+  soles = [
+      g for g in range(m.ngeom)
+      if "sole" in (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "")
+  ]
   data.qpos[2] -= data.geom_xpos[soles, 2].min() - m.geom_size[soles, 0].max() - 0.005
   joints = spec.joints
   qa = [m.jnt_qposadr[m.joint(j).id] for j in joints]
   va = [m.jnt_dofadr[m.joint(j).id] for j in joints]
-  q0, kp, kd, limit = (np.array([table[j] for j in joints]) for table in
-                       (spec.default_pose, spec.kp, spec.kd, spec.torque_limit))
+  q0, kp, kd, limit = (np.array([table[j]
+                                 for j in joints])
+                       for table in (spec.default_pose, spec.kp, spec.kd, spec.torque_limit))
   for _ in range(int(seconds / m.opt.timestep)):
     data.ctrl[:] = np.clip(kp * (q0 - data.qpos[qa]) - kd * data.qvel[va], -limit, limit)
     mujoco.mj_step(m, data)

@@ -11,7 +11,8 @@ import json
 from pathlib import Path
 
 from mash.bench import throughput
-from mash.sim import env as env_lib, robots
+from mash.sim import env as env_lib
+from mash.sim import robots
 
 RESULTS = Path(__file__).resolve().parents[1] / "results" / "2026-12-05_cpu_preset_newton2"
 
@@ -20,7 +21,9 @@ for iterations, ls in [(1, 4), (2, 4), (2, 2), (1, 2), (2, 1)]:
   physics = robots.PhysicsConfig(iterations=iterations, ls_iterations=ls)
   env = env_lib.MashEnv(env_lib.EnvConfig(physics=physics))
   steps_per_s, timing = throughput.env_steps(env, 512, 24, repeats=2)
-  rows.append({"iterations": iterations, "ls_iterations": ls, "env_steps_per_s": steps_per_s,
-               "compile_s": timing.compile_s})
+  rows.append({
+      "iterations": iterations, "ls_iterations": ls, "env_steps_per_s": steps_per_s,
+      "compile_s": timing.compile_s
+  })
   print(rows[-1], flush=True)
 (RESULTS / "solver_cost.json").write_text(json.dumps(rows, indent=1) + "\n")

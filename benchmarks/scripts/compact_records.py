@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
   parser = argparse.ArgumentParser(
       description=__doc__.split("\n", 1)[0],
       epilog="Replaces progress.csv by progress.csv.gz; drops or compresses progress_seeds.csv; "
-             "rewrites PNG plots as 256-colour palette PNGs.")
+      "rewrites PNG plots as 256-colour palette PNGs.")
   parser.add_argument("dirs", metavar="PATH", nargs="+", type=Path,
                       help="a folder to walk for run records and plots, or one .png file")
   parser.add_argument("--no-plots", action="store_true",

@@ -28,10 +28,14 @@ from mash.errors import InputError
 
 # The paper's Table "Evaluation metrics results" (Isaac Gym, BanXing robot).
 PAPER = {
-    "bipedal": {"mash": dict(T_conv=1306, S_action=0.107, S_torso=8.240e-4, C_limb=0.612),
-                "ppo": dict(T_conv=1661, S_action=0.547, S_torso=3.398e-3, C_limb=0.974)},
-    "armswing": {"mash": dict(T_conv=1017, S_action=0.124, S_torso=2.720e-3, C_limb=0.421),
-                 "ppo": dict(T_conv=1238, S_action=0.546, S_torso=2.802e-2, C_limb=0.951)},
+    "bipedal": {
+        "mash": dict(T_conv=1306, S_action=0.107, S_torso=8.240e-4, C_limb=0.612),
+        "ppo": dict(T_conv=1661, S_action=0.547, S_torso=3.398e-3, C_limb=0.974)
+    },
+    "armswing": {
+        "mash": dict(T_conv=1017, S_action=0.124, S_torso=2.720e-3, C_limb=0.421),
+        "ppo": dict(T_conv=1238, S_action=0.546, S_torso=2.802e-2, C_limb=0.951)
+    },
 }
 METRICS = ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate", "forward_speed")
 NAMES = {"mash": "MASH", "ppo": "Single-agent PPO"}
@@ -50,12 +54,12 @@ def _seeds(n: int) -> str:
 
 
 # Which way is better, per metric (forward speed: faster, at a command the policies fall short of).
-LOWER_IS_BETTER = {"T_conv": True, "S_action": True, "S_action_2nd": True, "S_torso": True,
-                   "C_limb": True, "C_limb_arm_leg": True, "fall_rate": True,
-                   "forward_speed": False}
+LOWER_IS_BETTER = {
+    "T_conv": True, "S_action": True, "S_action_2nd": True, "S_torso": True, "C_limb": True,
+    "C_limb_arm_leg": True, "fall_rate": True, "forward_speed": False
+}
 PAPER_METRICS = ("T_conv", "S_action", "S_torso", "C_limb")
 ALL_EPISODE_METRICS = ("S_action", "S_action_2nd", "S_torso", "C_limb")
-
 
 PRIMARY = PAPER_METRICS  # the verdict's family, fixed before the runs
 ALPHA = 0.05
@@ -77,20 +81,22 @@ def family_tests(table: dict, keys: list[str], family: str) -> dict:
   """Welch's test, Holm's correction over ``keys`` (one family), Hedges' g (MASH - PPO) and the
   verdict; for the primary family also the power at the observed effect and the smallest
   detectable effect at :data:`POWER`, both at Holm's strictest level ``ALPHA / len(keys)``."""
-  out = {k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"])
-         for k in keys}
+  out = {
+      k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"]) for k in keys
+  }
   adjusted = metrics_lib.holm([out[k]["p"] for k in keys])
   for k, p_holm in zip(keys, adjusted):
     a, b = table["mash"][k]["values"], table["ppo"][k]["values"]
     g = metrics_lib.hedges_g(a, b)
-    out[k].update(family=family, p_holm=p_holm, hedges_g=g, verdict=metrics_lib.verdict(
-        table["mash"][k]["mean"], table["ppo"][k]["mean"], p_holm,
-        LOWER_IS_BETTER[_metric_of(k)]))
+    out[k].update(
+        family=family, p_holm=p_holm, hedges_g=g,
+        verdict=metrics_lib.verdict(table["mash"][k]["mean"], table["ppo"][k]["mean"], p_holm,
+                                    LOWER_IS_BETTER[_metric_of(k)]))
     if family == "primary":
       alpha = ALPHA / len(keys)
       out[k].update(power=metrics_lib.t_test_power(g, len(a), len(b), alpha),
-                    detectable_effect=metrics_lib.detectable_effect(len(a), len(b), alpha, POWER),
-                    alpha=alpha)
+                    detectable_effect=metrics_lib.detectable_effect(len(a), len(b), alpha,
+                                                                    POWER), alpha=alpha)
   return out
 
 
@@ -117,8 +123,9 @@ def _metric_table(results: dict, convergence: dict | None) -> tuple[dict, dict, 
     for k in ALL_EPISODE_METRICS:
       secondary.append(f"all_episodes/{k}")
       for algo, res in results.items():
-        table[algo][f"all_episodes/{k}"] = _summary(
-            [m["all_episodes"][k] for m in res["per_seed"] if m["all_episodes"][k] is not None])
+        table[algo][f"all_episodes/{k}"] = _summary([
+            m["all_episodes"][k] for m in res["per_seed"] if m["all_episodes"][k] is not None
+        ])
   return table, unreached, secondary
 
 
@@ -131,10 +138,11 @@ def _cell(table: dict, algo: str, k: str) -> str:
 
 def _row_name(k: str, convergence: dict | None, unreached: dict) -> str:
   name = k.replace("all_episodes/", "") + (" (all episodes, up to the fall)"
-                                            if k.startswith("all_episodes/") else "")
+                                           if k.startswith("all_episodes/") else "")
   if "@" in k:
-    missed = [f"{NAMES[a]} {unreached[(a, k)]} seed(s)" for a in ("mash", "ppo")
-              if unreached[(a, k)]]
+    missed = [
+        f"{NAMES[a]} {unreached[(a, k)]} seed(s)" for a in ("mash", "ppo") if unreached[(a, k)]
+    ]
     name = (f"T_conv (paper reward reaches {convergence['threshold']:.1f}, window "
             f"{k.split('@')[1]})" + (f"; never reached: {', '.join(missed)}" if missed else ""))
   return name
@@ -152,8 +160,9 @@ def _family_rows(task: str, table: dict, tests: dict, keys: list[str], convergen
     p_holm = "n/a" if not np.isfinite(t["p_holm"]) else f"{t['p_holm']:.3g}"
     g = "n/a" if not np.isfinite(t["hedges_g"]) else f"{t['hedges_g']:+.2f}"
     paper = [PAPER[task][a].get(k, "–") for a in ("mash", "ppo")]
-    paper = [f"~{v}" if k == "T_conv" else (f"{v:.3g}" if isinstance(v, float) else v)
-             for v in paper]
+    paper = [
+        f"~{v}" if k == "T_conv" else (f"{v:.3g}" if isinstance(v, float) else v) for v in paper
+    ]
     power = ""
     if primary:
       power = (f" {t['power']:.2f} | {t['detectable_effect']:.2f} |"
@@ -172,8 +181,8 @@ def _verdict_lines(table: dict, tests: dict) -> list[str]:
       lines.append(f"- {k}: not available.")
       continue
     t = tests[k]
-    p_text = (f"{t['p_holm']:.3g}" if np.isfinite(t["p_holm"])
-              else "n/a, no test below two seeds a method")
+    p_text = (f"{t['p_holm']:.3g}"
+              if np.isfinite(t["p_holm"]) else "n/a, no test below two seeds a method")
     power = (f"; power {t['power']:.2f} at the observed g {t['hedges_g']:+.2f}, "
              f"{POWER:.0%} power from |g| {t['detectable_effect']:.2f}"
              if np.isfinite(t["power"]) else "")
@@ -194,26 +203,30 @@ def build_report(task: str, results: dict, preset: str, seeds: int,
   "no difference at this power"); the primary family's rows add the power figures.
   """
   table, unreached, secondary = _metric_table(results, convergence)
-  tests = {**family_tests(table, list(PRIMARY), "primary"),
-           **family_tests(table, secondary, "secondary")}
-  lines = [f"# MASH vs single-agent PPO: {task}", "",
-           f"Preset `{preset}`, {_seeds(seeds)} per method, same budget; evaluation: deterministic "
-           "policy, DR on, fixed forward command. Lower is better for T_conv, S_action, S_torso, "
-           "C_limb and the fall rate, higher for the forward speed. Mean ± std over seeds "
-           "[95 % bootstrap CI]; p: Welch's t-test, Holm-adjusted within its family; g: "
-           "Hedges' g of MASH - PPO.", "",
-           "## Primary family: the paper's four metrics (they decide the verdict)", "",
-           f"Holm over these four. Power: of each test at the observed g, at Holm's strictest "
-           f"level alpha = {ALPHA:g} / {len(PRIMARY)}; detectable g: the smallest effect "
-           f"{_seeds(seeds)} per method detect with {POWER:.0%} power there.", "",
-           *_family_rows(task, table, tests, list(PRIMARY), convergence, unreached), "",
-           "## Secondary family (reported; Holm over these rows; not deciding the verdict)", "",
-           *_family_rows(task, table, tests, secondary, convergence, unreached), "",
-           "## Verdict (primary family)", "", *_verdict_lines(table, tests)]
-  data = {"task": task, "preset": preset, "seeds": seeds, "table": table, "tests": tests,
-          "families": {"primary": list(PRIMARY), "secondary": secondary, "alpha": ALPHA,
-                       "power": POWER},
-          "paper": PAPER[task], "convergence": convergence}
+  tests = {
+      **family_tests(table, list(PRIMARY), "primary"), **family_tests(table, secondary, "secondary")
+  }
+  lines = [
+      f"# MASH vs single-agent PPO: {task}", "",
+      f"Preset `{preset}`, {_seeds(seeds)} per method, same budget; evaluation: deterministic "
+      "policy, DR on, fixed forward command. Lower is better for T_conv, S_action, S_torso, "
+      "C_limb and the fall rate, higher for the forward speed. Mean ± std over seeds "
+      "[95 % bootstrap CI]; p: Welch's t-test, Holm-adjusted within its family; g: "
+      "Hedges' g of MASH - PPO.", "",
+      "## Primary family: the paper's four metrics (they decide the verdict)", "",
+      f"Holm over these four. Power: of each test at the observed g, at Holm's strictest "
+      f"level alpha = {ALPHA:g} / {len(PRIMARY)}; detectable g: the smallest effect "
+      f"{_seeds(seeds)} per method detect with {POWER:.0%} power there.", "",
+      *_family_rows(task, table, tests, list(PRIMARY), convergence, unreached), "",
+      "## Secondary family (reported; Holm over these rows; not deciding the verdict)", "",
+      *_family_rows(task, table, tests, secondary, convergence, unreached), "",
+      "## Verdict (primary family)", "", *_verdict_lines(table, tests)
+  ]
+  data = {
+      "task": task, "preset": preset, "seeds": seeds, "table": table, "tests": tests, "families": {
+          "primary": list(PRIMARY), "secondary": secondary, "alpha": ALPHA, "power": POWER
+      }, "paper": PAPER[task], "convergence": convergence
+  }
   return "\n".join(lines) + "\n", data
 
 
@@ -313,19 +326,23 @@ def per_seed_table(results: dict, convergence: dict | None, dirs: dict, paired: 
   head = ["seed", "method", "falls", "forward speed (m/s)", "S_action", "S_torso", "C_limb (rad)"]
   head += ["C_limb arm-leg (rad)"] * arms + ([f"T_conv (window {w})"] if w else [])
   head += ["training wall (s)"]
-  lines = ["", "## Per seed", "",
-           "Each seed's evaluation (`<algo>/lr<rate>/seed<s>/eval/metrics.json`); T_conv at the "
-           "common threshold; the wall time includes whatever shared the cores (for seeds "
-           "trained together, the whole group's, named beside it).", "",
-           "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+  lines = [
+      "", "## Per seed", "",
+      "Each seed's evaluation (`<algo>/lr<rate>/seed<s>/eval/metrics.json`); T_conv at the "
+      "common threshold; the wall time includes whatever shared the cores (for seeds "
+      "trained together, the whole group's, named beside it).", "", "| " + " | ".join(head) + " |",
+      "|" + "---|" * len(head)
+  ]
   for i, name in enumerate(paired):
     for algo in ("mash", "ppo"):
       m = results[algo]["per_seed"][i]
       summary = dirs[algo][i] / "summary.json"
       summary = json.loads(summary.read_text()) if summary.is_file() else {}
       wall, group = summary.get("wall_s"), summary.get("group")
-      row = [name[4:], NAMES[algo], f"{100 * m['fall_rate']:.1f} %", f"{m['forward_speed']:.3f}",
-             f"{m['S_action']:.3f}", f"{m['S_torso']:.3f}", f"{m['C_limb']:.3f}"]
+      row = [
+          name[4:], NAMES[algo], f"{100 * m['fall_rate']:.1f} %", f"{m['forward_speed']:.3f}",
+          f"{m['S_action']:.3f}", f"{m['S_torso']:.3f}", f"{m['C_limb']:.3f}"
+      ]
       if arms:
         row.append(f"{m['C_limb_arm_leg']:.3f}")
       if w:
@@ -340,14 +357,25 @@ def build_from_dirs(task: str, out: Path, preset: str,
                     method_dirs: dict[str, Path]) -> tuple[str, dict, dict]:
   """The report of the seeds evaluated so far in ``method_dirs`` (a method -> the folder of its
   ``seed<s>/`` runs), paired by seed: ``(markdown, data, {algo: [seed run directories]})``."""
-  evaluated = {algo: {_seed_key(d): d for d in seed_dirs(method_dirs[algo])
-                      if (d / "eval" / "metrics.json").is_file()} for algo in ("mash", "ppo")}
+  evaluated = {
+      algo: {
+          _seed_key(d): d
+          for d in seed_dirs(method_dirs[algo])
+          if (d / "eval" / "metrics.json").is_file()
+      } for algo in ("mash", "ppo")
+  }
   paired = sorted(set(evaluated["mash"]) & set(evaluated["ppo"]), key=lambda n: int(n[4:]))
   if not paired:
     raise InputError(f"'{out}' has no seed evaluated for both methods yet")
   dirs = {algo: [evaluated[algo][n] for n in paired] for algo in evaluated}
-  results = {algo: {"per_seed": [json.loads((d / "eval" / "metrics.json").read_text())
-                                 ["per_seed"][0] for d in dirs[algo]]} for algo in dirs}
+  results = {
+      algo: {
+          "per_seed": [
+              json.loads((d / "eval" / "metrics.json").read_text())["per_seed"][0]
+              for d in dirs[algo]
+          ]
+      } for algo in dirs
+  }
   curves = {algo: method_curves(dirs[algo])[1] for algo in dirs}
   n_it = min(c.shape[1] for c in curves.values())
   convergence = metrics_lib.common_threshold_t_conv({a: c[:, :n_it] for a, c in curves.items()})
@@ -362,14 +390,14 @@ def build_from_dirs(task: str, out: Path, preset: str,
 
 
 def _tuning_text(t: dict) -> str:
-  return ("\n## Tuning\n\nThe same search for both methods: learning rates "
-          + ", ".join(f"{lr:g}" for lr in t["learning_rates"]) + ", seed 0 each, the preset's "
+  return ("\n## Tuning\n\nThe same search for both methods: learning rates " +
+          ", ".join(f"{lr:g}" for lr in t["learning_rates"]) + ", seed 0 each, the preset's "
           "budget; the rule picks the rate whose run ends with the highest paper-weight episode "
-          "reward (mean of its last 10 % of iterations). Final rewards: "
-          + "; ".join(f"{NAMES[a]} " + ", ".join(f"{lr} -> {r:.1f}"
-                                                  for lr, r in t["final"][a].items())
-                      for a in ("mash", "ppo"))
-          + f". Picked: MASH {t['picked']['mash']:g}, PPO {t['picked']['ppo']:g}.\n")
+          "reward (mean of its last 10 % of iterations). Final rewards: " +
+          "; ".join(f"{NAMES[a]} " + ", ".join(f"{lr} -> {r:.1f}"
+                                               for lr, r in t["final"][a].items())
+                    for a in ("mash", "ppo")) +
+          f". Picked: MASH {t['picked']['mash']:g}, PPO {t['picked']['ppo']:g}.\n")
 
 
 def write_report(task: str, out: Path, preset: str, method_dirs: dict[str, Path]) -> str:
@@ -413,8 +441,7 @@ def _readme_rows(rep: dict) -> list[tuple[str, str, str, str]]:
   conv = rep.get("convergence")
   if conv and conv["windows"]:
     w = conv["windows"][len(conv["windows"]) // 2]
-    rows.append((f"T_conv@{w}", "", f"T_conv to {conv['threshold']:.1f} (window {w})",
-                 "secondary"))
+    rows.append((f"T_conv@{w}", "", f"T_conv to {conv['threshold']:.1f} (window {w})", "secondary"))
   rows += [(k, k, label, "secondary") for k, label in README_SECONDARY if k in table]
   return rows
 
@@ -425,8 +452,10 @@ def readme_table(reports: list[dict]) -> str:
   its Holm-adjusted p within the family, and the report's verdict (only the primary family
   decides the paper's claim; the paper's T_conv is its own definition on its own runs, so only
   the direction compares)."""
-  lines = ["| task | metric | family | MASH (ours) | PPO (ours) | p (Holm) | verdict (ours) | "
-           "MASH (paper) | PPO (paper) |", "|---|---|---|---|---|---|---|---|---|"]
+  lines = [
+      "| task | metric | family | MASH (ours) | PPO (ours) | p (Holm) | verdict (ours) | "
+      "MASH (paper) | PPO (paper) |", "|---|---|---|---|---|---|---|---|---|"
+  ]
   for rep in reports:
     task, table, tests = rep["task"], rep["table"], rep["tests"]
     for k, key, label, family in _readme_rows(rep):

@@ -14,12 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mash.sim import env as env_lib
 from mash.analysis import metrics as metrics_lib
-from mash.sim import randomize
 from mash.checks import MAX_INT32, Bound, check_bounds
-from mash.sim import env_config
-from mash.sim import geometry
+from mash.sim import env as env_lib
+from mash.sim import env_config, geometry, randomize
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,8 +81,8 @@ def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_confi
   """The training env config at a fixed forward command, no auto-reset, long enough episodes."""
   steps = int(round(cfg.episode_s / env_cfg.ctrl_dt))
   commands = env_config.CommandConfig(vx=(cfg.command_vx, cfg.command_vx), vy=(0.0, 0.0),
-                                   yaw_rate=(0.0, 0.0), standing_prob=0.0,
-                                   resample_s=10 * cfg.episode_s)
+                                      yaw_rate=(0.0, 0.0), standing_prob=0.0,
+                                      resample_s=10 * cfg.episode_s)
   # Evaluation draws from the friction range training ends on, not the curriculum's start nor
   # the slippery floors' extra share.
   randomization = dataclasses.replace(env_cfg.randomization, enabled=cfg.randomization,
@@ -111,8 +109,7 @@ Perturbation = Callable[[Any, jax.Array, jax.Array], Any]
 
 
 def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.Array],
-            cfg: EvalConfig, perturb: Perturbation | None = None,
-            values: np.ndarray | None = None,
+            cfg: EvalConfig, perturb: Perturbation | None = None, values: np.ndarray | None = None,
             commands: np.ndarray | None = None) -> dict[str, np.ndarray]:
   """Runs ``cfg.num_episodes`` deterministic episodes.
 
@@ -154,11 +151,9 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     yaw_rate = geometry.quat_rotate_inverse(conj, qvel[3:6])[2]
     out = dict(actions=action, base_height=s["base_height"], euler=s["euler"],
                hip_pitch=s["q"][hips], hip_pitch_ref=(q_default + q_ref)[hips],
-               shoulder_pitch=s["q"][shoulders],
-               forward_velocity=s["lin_vel"][0],
-               world_velocity=jnp.stack([qvel[0], qvel[1], yaw_rate]),
-               command=nxt.info["command"], done=nxt.done,
-               contact=contact, friction=nxt.info["dr"].friction)
+               shoulder_pitch=s["q"][shoulders], forward_velocity=s["lin_vel"][0],
+               world_velocity=jnp.stack([qvel[0], qvel[1], yaw_rate]), command=nxt.info["command"],
+               done=nxt.done, contact=contact, friction=nxt.info["dr"].friction)
     return (nxt, value), out
 
   def episode(key, value, command):
@@ -171,8 +166,8 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
   if values.shape[:1] != (cfg.num_episodes,):
     raise ValueError(f"values must have a leading axis of {cfg.num_episodes} (one per episode), "
                      f"got shape {values.shape}")
-  cmds = jnp.zeros((cfg.num_episodes, 4)) if commands is None else jnp.asarray(commands,
-                                                                               jnp.float32)
+  cmds = jnp.zeros(
+      (cfg.num_episodes, 4)) if commands is None else jnp.asarray(commands, jnp.float32)
   if cmds.shape != (cfg.num_episodes, 4):
     raise ValueError(f"commands must have shape ({cfg.num_episodes}, 4), got {cmds.shape}")
   traj = jax.device_get(jax.jit(jax.vmap(episode))(keys, values, cmds))
@@ -225,13 +220,14 @@ def robustness(env_config: env_config.EnvConfig, policy: Callable, frictions: np
   """
   frictions = np.asarray(frictions, np.float32).reshape(-1)
   pushes = np.asarray(pushes, np.float32).reshape(-1)
-  grid = np.concatenate([np.stack([frictions, np.zeros_like(frictions)], -1),
-                         np.stack([np.full_like(pushes, nominal_friction), pushes], -1)])
-  cfg = dataclasses.replace(cfg, num_episodes=len(grid) * episodes_per_value,
-                            randomization=False)
+  grid = np.concatenate([
+      np.stack([frictions, np.zeros_like(frictions)], -1),
+      np.stack([np.full_like(pushes, nominal_friction), pushes], -1)
+  ])
+  cfg = dataclasses.replace(cfg, num_episodes=len(grid) * episodes_per_value, randomization=False)
   env_cfg = eval_env_config(env_config, cfg)
-  env_cfg = dataclasses.replace(env_cfg, randomization=dataclasses.replace(
-      env_cfg.randomization, push_interval_s=1e5))
+  env_cfg = dataclasses.replace(
+      env_cfg, randomization=dataclasses.replace(env_cfg.randomization, push_interval_s=1e5))
   env = env_lib.MashEnv(env_cfg)
   traj = rollout(env, policy, cfg, friction_and_push(push_start_s, push_duration_s, env.dt),
                  np.repeat(grid, episodes_per_value, axis=0))
@@ -240,8 +236,10 @@ def robustness(env_config: env_config.EnvConfig, policy: Callable, frictions: np
   fall = 1.0 - alive.min(axis=-1).mean(axis=-1)
   fwd = (speed * alive).sum(axis=(1, 2)) / np.maximum(alive.sum(axis=(1, 2)), 1)
   n = len(frictions)
-  return {"friction": {"values": frictions, "fall_rate": fall[:n], "forward_speed": fwd[:n]},
-          "push": {"values": pushes, "fall_rate": fall[n:], "forward_speed": fwd[n:]}}
+  return {
+      "friction": {"values": frictions, "fall_rate": fall[:n], "forward_speed": fwd[:n]},
+      "push": {"values": pushes, "fall_rate": fall[n:], "forward_speed": fwd[n:]}
+  }
 
 
 # Bands of the floor friction for ``fall_rate_by_friction``, over the paper's range U[0.1, 1.2].
@@ -317,8 +315,10 @@ def metrics_up_to_the_fall(traj: dict[str, np.ndarray], min_steps: int = 50) -> 
   per = []
   for e in keep:
     n = alive_steps[e]
-    per.append(metrics_lib.all_metrics({k: traj[k][e:e + 1, :n] for k in (
-        "actions", "base_height", "euler", "hip_pitch")}))
+    per.append(
+        metrics_lib.all_metrics({
+            k: traj[k][e:e + 1, :n] for k in ("actions", "base_height", "euler", "hip_pitch")
+        }))
   keys = ("S_action", "S_action_2nd", "S_torso", "C_limb")
   out = {k: (float(np.mean([m[k] for m in per])) if per else None) for k in keys}
   out.update(episodes=int(len(keep)), episodes_too_short=int(len(alive_steps) - len(keep)))
@@ -330,10 +330,16 @@ def metrics_up_to_the_fall(traj: dict[str, np.ndarray], min_steps: int = 50) -> 
 # and turning commands at the ends of their training ranges.
 TRACKING_GRID = (
     (1.0, 0.0, 0.0, 0.0),
-    (0.0, -0.3, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (0.0, 0.2, 0.0, 0.0), (0.0, 0.4, 0.0, 0.0),
-    (0.0, 0.6, 0.0, 0.0), (0.0, 0.8, 0.0, 0.0),
-    (0.0, 0.0, 0.2, 0.0), (0.0, 0.0, -0.2, 0.0),
-    (0.0, 0.0, 0.0, 0.5), (0.0, 0.0, 0.0, -0.5),
+    (0.0, -0.3, 0.0, 0.0),
+    (0.0, 0.0, 0.0, 0.0),
+    (0.0, 0.2, 0.0, 0.0),
+    (0.0, 0.4, 0.0, 0.0),
+    (0.0, 0.6, 0.0, 0.0),
+    (0.0, 0.8, 0.0, 0.0),
+    (0.0, 0.0, 0.2, 0.0),
+    (0.0, 0.0, -0.2, 0.0),
+    (0.0, 0.0, 0.0, 0.5),
+    (0.0, 0.0, 0.0, -0.5),
 )
 TRACKING_AXES = ("vx", "vy", "yaw_rate")
 
@@ -390,8 +396,10 @@ def tracking(traj: dict[str, np.ndarray], commands: np.ndarray) -> dict[str, Any
     w = steps_alive[pick] / steps_alive[pick].sum()
     achieved = (episode_vel[pick] * w[:, None]).sum(axis=0)
     errors = np.abs(episode_vel[pick] - command[1:]).mean(axis=0)
-    entry = {"command": [round(float(c), 6) for c in command], "episodes": int(pick.sum()),
-             "fall_rate": float(1.0 - survived[pick].mean())}
+    entry = {
+        "command": [round(float(c), 6) for c in command], "episodes": int(pick.sum()),
+        "fall_rate": float(1.0 - survived[pick].mean())
+    }
     entry.update({axis: float(achieved[i]) for i, axis in enumerate(TRACKING_AXES)})
     entry["abs_error"] = {axis: float(errors[i]) for i, axis in enumerate(TRACKING_AXES)}
     spread = episode_vel[pick].std(axis=0)
@@ -401,14 +409,15 @@ def tracking(traj: dict[str, np.ndarray], commands: np.ndarray) -> dict[str, Any
       drift = float(np.linalg.norm(episode_vel[pick, :2], axis=-1).mean())
   return {
       "grid": grid,
-      "mean_abs_error": {axis: float(np.mean([g["abs_error"][axis] for g in grid]))
-                         for axis in TRACKING_AXES},
+      "mean_abs_error": {
+          axis: float(np.mean([g["abs_error"][axis] for g in grid])) for axis in TRACKING_AXES
+      },
       "fall_rate": float(1.0 - survived.mean()),
       "standing_drift": drift,
   }
 
 
-def tracking_commands(episodes_per_command: int,
-                      grid: tuple[tuple[float, ...], ...] = TRACKING_GRID) -> np.ndarray:
+def tracking_commands(episodes_per_command: int, grid: tuple[tuple[float, ...],
+                                                             ...] = TRACKING_GRID) -> np.ndarray:
   """``[len(grid) * episodes_per_command, 4]`` episode commands, each grid entry repeated."""
   return np.repeat(np.asarray(grid, np.float32), episodes_per_command, axis=0)

@@ -19,8 +19,8 @@ the MASH-vs-PPO comparison table.
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
 import warnings
+from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import signal, stats
@@ -101,9 +101,12 @@ def common_threshold_t_conv(curves: Mapping[str, np.ndarray], fraction: float = 
   lowest = min(final.values())
   threshold = lowest * fraction if lowest >= 0 else lowest * (2.0 - fraction)
   windows = [max(1, n // d) for d in (100, 50, 25)] if windows is None else list(windows)
-  return {"threshold": float(threshold), "windows": windows, "final": final,
-          "t_conv": {k: {w: [reach_iteration(row, threshold, w) for row in a] for w in windows}
-                     for k, a in arrays.items()}}
+  return {
+      "threshold": float(threshold), "windows": windows, "final": final, "t_conv": {
+          k: {w: [reach_iteration(row, threshold, w) for row in a] for w in windows}
+          for k, a in arrays.items()
+      }
+  }
 
 
 def convergence_iteration(rewards, window: int | None = None) -> tuple[int, dict]:
@@ -216,10 +219,8 @@ def torso_stability(base_height, euler, w_h: float = 1.0, w_theta: float = 1.0) 
   h = _as_array(base_height, "base_height", (1, 2), "[T] or [E, T]")
   e = np.asarray(euler, dtype=np.float64)
   if e.shape != h.shape + (3,):
-    raise ValueError(
-        f"`euler` must have shape {h.shape + (3,)} ([T, 3] or [E, T, 3] matching "
-        f"`base_height`), got shape {e.shape}"
-    )
+    raise ValueError(f"`euler` must have shape {h.shape + (3,)} ([T, 3] or [E, T, 3] matching "
+                     f"`base_height`), got shape {e.shape}")
   if h.ndim == 1:
     h, e = h[None], e[None]
   e = e.copy()
@@ -256,8 +257,7 @@ def limb_coordination(hip_left, hip_right, target: float = np.pi) -> float:
   right = np.asarray(hip_right, dtype=np.float64)
   if right.shape != left.shape:
     raise ValueError(
-        f"`hip_right` must have the same shape as `hip_left` {left.shape}, got {right.shape}"
-    )
+        f"`hip_right` must have the same shape as `hip_left` {left.shape}, got {right.shape}")
   if left.ndim == 1:
     left, right = left[None], right[None]
 
@@ -283,8 +283,8 @@ def arm_leg_coordination(shoulder_pitch, hip_pitch) -> float:
   if s.shape != h.shape or s.shape[-1] != 2:
     raise ValueError(f"`shoulder_pitch` and `hip_pitch` must share a shape [..., T, 2], got "
                      f"{s.shape} and {h.shape}")
-  return 0.5 * (limb_coordination(s[..., 0], h[..., 1], target=0.0)
-                + limb_coordination(s[..., 1], h[..., 0], target=0.0))
+  return 0.5 * (limb_coordination(s[..., 0], h[..., 1], target=0.0) +
+                limb_coordination(s[..., 1], h[..., 0], target=0.0))
 
 
 def all_metrics(trajectories: Mapping[str, np.ndarray], rewards_per_iteration=None) -> dict:
@@ -403,8 +403,8 @@ def hedges_g(a: Sequence[float], b: Sequence[float]) -> float:
   b = np.asarray(b, dtype=np.float64).reshape(-1)
   if a.size < 2 or b.size < 2:
     return float("nan")
-  pooled = np.sqrt(((a.size - 1) * a.var(ddof=1) + (b.size - 1) * b.var(ddof=1))
-                   / (a.size + b.size - 2))
+  pooled = np.sqrt(
+      ((a.size - 1) * a.var(ddof=1) + (b.size - 1) * b.var(ddof=1)) / (a.size + b.size - 2))
   if pooled == 0:
     return float("nan")
   correction = 1.0 - 3.0 / (4.0 * (a.size + b.size) - 9.0)
@@ -415,8 +415,8 @@ def verdict(mean_a: float, mean_b: float, p_adjusted: float, lower_is_better: bo
             names: tuple[str, str] = ("MASH", "PPO"), alpha: float = 0.05) -> str:
   """``'<a> better'``, ``'<b> better'`` or ``'no difference at this power'``: a side is better
   only when the (Holm-adjusted) p is below ``alpha`` and its mean is on the better side."""
-  if not (np.isfinite(p_adjusted) and p_adjusted < alpha and np.isfinite(mean_a)
-          and np.isfinite(mean_b)) or mean_a == mean_b:
+  if not (np.isfinite(p_adjusted) and p_adjusted < alpha and np.isfinite(mean_a) and
+          np.isfinite(mean_b)) or mean_a == mean_b:
     return "no difference at this power"
   a_better = (mean_a < mean_b) == lower_is_better
   return f"{names[0] if a_better else names[1]} better"

@@ -18,9 +18,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from mash.analysis import evaluation
+from mash.analysis import evaluation, robustness
 from mash.analysis import metrics as metrics_lib
-from mash.analysis import robustness
 from mash.deploy import policy as policy_lib
 from mash.sim import env as env_lib
 from mash.sim import tasks
@@ -59,21 +58,23 @@ def summarize(per_seed: list[dict], episodes: dict[str, np.ndarray], eval_config
   result["command_vx"] = eval_config["command_vx"]
   result["iteration"] = iteration
   result["std"] = {k: metrics_lib.seed_summary([m[k] for m in per_seed])["std"] for k in keys}
-  result["fall_rate_by_friction"] = evaluation.falls_by_friction(
-      episodes["friction"], episodes["alive"].min(axis=1) > 0)
+  result["fall_rate_by_friction"] = evaluation.falls_by_friction(episodes["friction"],
+                                                                 episodes["alive"].min(axis=1) > 0)
   result["all_episodes"] = {
-      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
-          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
-      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
+      k: (float(np.mean([m["all_episodes"][k]
+                         for m in per_seed])) if all(m["all_episodes"][k] is not None
+                                                     for m in per_seed) else None
+         ) for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")
+  }
   result["per_seed"] = per_seed
   result["eval_config"] = eval_config
-  result["smoothing_window"] = (None if curve is None
-                                else metrics_lib.convergence_iteration(curve)[1]["window"])
+  result["smoothing_window"] = (None if curve is None else
+                                metrics_lib.convergence_iteration(curve)[1]["window"])
   return result
 
 
-def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
-                 iteration: int | None = None, robot: str | None = None) -> dict:
+def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True, iteration: int | None = None,
+                 robot: str | None = None) -> dict:
   """Evaluates every seed of a run's latest checkpoint (or the one saved at ``iteration``), or
   the policy of a policy folder (:mod:`mash.deploy.policy`); returns (and writes) the metrics."""
 
@@ -83,14 +84,15 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   env = env_lib.MashEnv(evaluation.eval_env_config(cfg.env, eval_cfg))
 
   # A policy folder has no learning curve: no T_conv.
-  progress = ({} if policy_lib.is_policy_folder(run_dir)
-              else policy_lib.read_progress(run_dir, per_seed=True))
+  progress = ({} if policy_lib.is_policy_folder(run_dir) else policy_lib.read_progress(
+      run_dir, per_seed=True))
   per_seed, trajs = [], []
   for policy in policies:
     s = policy.seed
     traj = evaluation.rollout(env, policy_lib.make_inference_fn(policy, env), eval_cfg)
-    per_seed.append(evaluation.evaluate(traj, eval_cfg.command_vx, learning_curve(progress, s),
-                                        arms_act=tasks.get(cfg.env.task).arms_act))
+    per_seed.append(
+        evaluation.evaluate(traj, eval_cfg.command_vx, learning_curve(progress, s),
+                            arms_act=tasks.get(cfg.env.task).arms_act))
     traj["seed"] = np.full(traj["alive"].shape[0], s)
     trajs.append(traj)
   merged = {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0] if k != "dt"}
@@ -105,8 +107,8 @@ def evaluate_run(run_dir: str, eval_cfg=None, write: bool = True,
   return result
 
 
-def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
-                 write: bool = True, robot: str | None = None) -> dict:
+def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None, write: bool = True,
+                 robot: str | None = None) -> dict:
   """Rolls every seed of a run's policy over the command grid (``evaluation.TRACKING_GRID``,
   ``eval_cfg.num_episodes`` episodes per command) and returns (and writes) ``tracking.json``'s
   content: the episodes of all seeds together, and ``per_seed`` when the run has several (a
@@ -124,19 +126,24 @@ def tracking_run(run_dir: str, eval_cfg, iteration: int | None = None,
                               commands=commands)
     per_seed.append(evaluation.tracking(traj, commands))
     trajs.append(traj)
-  merged = {k: np.concatenate([t[k] for t in trajs])
-            for k in ("world_velocity", "euler", "alive", "command")}
+  merged = {
+      k: np.concatenate([t[k] for t in trajs])
+      for k in ("world_velocity", "euler", "alive", "command")
+  }
   all_commands = np.concatenate([commands] * seeds)
   result = evaluation.tracking(merged, all_commands)
   result["iteration"] = policies[0].iteration
   result["seeds"] = seeds
-  result["eval_config"] = {k: (list(v) if isinstance(v, tuple) else v)
-                           for k, v in dataclasses.asdict(eval_cfg).items()}
+  result["eval_config"] = {
+      k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(eval_cfg).items()
+  }
   if seeds > 1:
     result["all_episodes"] = {
-      k: (float(np.mean([m["all_episodes"][k] for m in per_seed]))
-          if all(m["all_episodes"][k] is not None for m in per_seed) else None)
-      for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")}
+        k: (float(np.mean([m["all_episodes"][k]
+                           for m in per_seed])) if all(m["all_episodes"][k] is not None
+                                                       for m in per_seed) else None
+           ) for k in ("S_action", "S_action_2nd", "S_torso", "C_limb")
+    }
   result["per_seed"] = per_seed
   if write:
     out = Path(run_dir) / tracking_dir_name(eval_cfg, iteration)
@@ -172,8 +179,10 @@ def plot_tracking(result: dict, path: Path, title: str) -> None:
   axes = fig.subplots(1, 3)
   for i, (ax, axis) in enumerate(zip(axes, evaluation.TRACKING_AXES)):
     others = [j for j in range(3) if j != i]
-    entries = [g for g in result["grid"] if g["command"][0] == 0
-               and all(g["command"][1 + j] == 0 for j in others)]
+    entries = [
+        g for g in result["grid"]
+        if g["command"][0] == 0 and all(g["command"][1 + j] == 0 for j in others)
+    ]
     entries.sort(key=lambda g: g["command"][1 + i])
     x = np.array([g["command"][1 + i] for g in entries])
     y = np.array([g[axis] for g in entries])
@@ -199,8 +208,8 @@ def plot_tracking(result: dict, path: Path, title: str) -> None:
     ax.grid(alpha=0.3)
   axes[0].legend(loc="upper left", fontsize=8)
   drift = result["standing_drift"]
-  fig.suptitle(f"{title}: command tracking, {100 * result['fall_rate']:.1f} % falls"
-               + ("" if drift is None else f", standing drift {drift:.3f} m/s"))
+  fig.suptitle(f"{title}: command tracking, {100 * result['fall_rate']:.1f} % falls" +
+               ("" if drift is None else f", standing drift {drift:.3f} m/s"))
   fig.tight_layout()
   fig.savefig(path, dpi=120)
 
@@ -243,10 +252,10 @@ def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float
 
 
 # The flag that sets each EvalConfig field, to name it in an error.
-EVAL_FLAGS = {"command_vx": "--command-vx", "num_episodes": "--episodes", "episode_s": "--seconds",
-              "push_interval_s": "--push-interval", "friction": "--friction", "seed": "--seed"}
-
-
+EVAL_FLAGS = {
+    "command_vx": "--command-vx", "num_episodes": "--episodes", "episode_s": "--seconds",
+    "push_interval_s": "--push-interval", "friction": "--friction", "seed": "--seed"
+}
 
 
 def print_tracking(result: dict) -> None:
@@ -259,17 +268,22 @@ def print_tracking(result: dict) -> None:
           f"falls {g['fall_rate']:.3f} of {g['episodes']}")
   err, drift = result["mean_abs_error"], result["standing_drift"]
   print(f"mean |error|: vx {err['vx']:.3f} m/s, vy {err['vy']:.3f} m/s, yaw rate "
-        f"{err['yaw_rate']:.3f} rad/s; falls {result['fall_rate']:.3f}; standing drift "
-        + ("n/a" if drift is None else f"{drift:.3f} m/s"))
+        f"{err['yaw_rate']:.3f} rad/s; falls {result['fall_rate']:.3f}; standing drift " +
+        ("n/a" if drift is None else f"{drift:.3f} m/s"))
 
 
 def print_metrics(result: dict) -> None:
   """An evaluation's headline metrics as the command prints them, and the falls by friction."""
-  shown = {k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb",
-                                  "fall_rate", "forward_speed", "command_vx")}
+  shown = {
+      k: result[k] for k in ("T_conv", "S_action", "S_action_2nd", "S_torso", "C_limb", "fall_rate",
+                            "forward_speed", "command_vx")
+  }
   print(json.dumps(shown, indent=2))
-  bands = [f"{b['friction'][0]:g}-{b['friction'][1]:g}: {b['fall_rate']:.2f} of {b['episodes']}"
-           for b in result["fall_rate_by_friction"] if b["episodes"]]
+  bands = [
+      f"{b['friction'][0]:g}-{b['friction'][1]:g}: {b['fall_rate']:.2f} of {b['episodes']}"
+      for b in result["fall_rate_by_friction"]
+      if b["episodes"]
+  ]
   print("fall rate by floor friction: " + ", ".join(bands))
 
 
@@ -277,8 +291,8 @@ def describe(cfg: evaluation.EvalConfig, seed_given: bool) -> str:
   """How an evaluation randomizes, in words (``on``, ``off``, with its diagnostics)."""
   dr = "off" if not cfg.randomization else ("on without pushes" if not cfg.pushes else "on")
   if cfg.push_interval_s is not None:
-    dr += (", a new push every control step" if cfg.push_interval_s == 0
-           else f", each push held {cfg.push_interval_s:g} s")
+    dr += (", a new push every control step"
+           if cfg.push_interval_s == 0 else f", each push held {cfg.push_interval_s:g} s")
   if cfg.friction is not None:
     dr += f", floor friction U[{cfg.friction[0]:g}, {cfg.friction[1]:g}]"
   if seed_given:
@@ -296,20 +310,24 @@ def robustness_run(run_dir: str, cfg: robustness.BatteryConfig = robustness.Batt
   policies = policy_lib.load_all(run_dir, iteration, robot)
   env = env_lib.MashEnv(robustness.battery_env_config(policies[0].config.env, cfg))
   per_seed = [robustness.run(env, policy_lib.make_inference_fn(p, env), cfg) for p in policies]
-  rows = [{**row, "survival": float(np.mean([s[i]["survival"] for s in per_seed])),
-           "forward_speed": float(np.mean([s[i]["forward_speed"] for s in per_seed]))}
-          for i, row in enumerate(per_seed[0])]
+  rows = [{
+      **row, "survival": float(np.mean([s[i]["survival"] for s in per_seed])),
+      "forward_speed": float(np.mean([s[i]["forward_speed"] for s in per_seed]))
+  } for i, row in enumerate(per_seed[0])]
   for row in rows:
     row.pop("survival_by_direction", None)
-  result = {"engine": "mjx", "iteration": policies[0].iteration, "seeds": len(policies),
-            "battery": dataclasses.asdict(cfg), "conditions": rows, "per_seed": per_seed}
+  result = {
+      "engine": "mjx", "iteration": policies[0].iteration, "seeds": len(policies),
+      "battery": dataclasses.asdict(cfg), "conditions": rows, "per_seed": per_seed
+  }
   if write:
     out = Path(run_dir) / ("eval_robustness" + ("" if iteration is None else f"_it{iteration}"))
     out.mkdir(exist_ok=True)
     (out / "robustness.json").write_text(json.dumps(result, indent=2))
-    plot_robustness(rows, out / "robustness.png",
-                    f"{policies[0].config.task} {policies[0].config.algo}, MJX, iteration "
-                    f"{policies[0].iteration}, {cfg.episodes} episodes a condition")
+    plot_robustness(
+        rows, out / "robustness.png",
+        f"{policies[0].config.task} {policies[0].config.algo}, MJX, iteration "
+        f"{policies[0].iteration}, {cfg.episodes} episodes a condition")
   return result
 
 

@@ -69,17 +69,19 @@ def stand_native(spec: robots.RobotSpec, seconds: float) -> np.ndarray:
 def stand_mjx(spec_file: str, seconds: float) -> tuple[np.ndarray, np.ndarray]:
   """``([T] torso height above the soles (m), [T] |tilt| (rad))`` every control step while the
   env holds the default pose at zero action in MJX, randomization off."""
-  cfg = env_config.EnvConfig(robot=spec_file, auto_reset=False, episode_length=2**30,
-                             randomization=dataclasses.replace(randomize.DomainRandConfig(),
-                                                               enabled=False))
+  cfg = env_config.EnvConfig(
+      robot=spec_file, auto_reset=False, episode_length=2**30,
+      randomization=dataclasses.replace(randomize.DomainRandConfig(), enabled=False))
   env = env_lib.MashEnv(cfg)
   steps = int(round(seconds / env.dt))
 
   def run(key):
+
     def step(state, _):
       state = env.step(state, jnp.zeros(env.action_size))
       s = env.sensors(state.pipeline_state)
       return state, (s["base_height"], jnp.max(jnp.abs(s["euler"][:2])))
+
     return jax.lax.scan(step, env.reset(key, command=jnp.array([1.0, 0, 0, 0])), None, steps)[1]
 
   height, tilt = jax.device_get(jax.jit(run)(jax.random.PRNGKey(0)))
@@ -95,13 +97,15 @@ def _stands(name: str, height: np.ndarray, tilt: np.ndarray | None, seconds: flo
   tilted = tilt is not None and float(tilt.max()) > STANDS_TILT
   if low < fall_height or end < STANDS_HEIGHT * float(height[0]) or tilted:
     when = int(np.argmax(height < max(fall_height, STANDS_HEIGHT * float(height[0]))))
-    return Finding("error", "roles.*.kp / roles.*.default",
-                   f"{name}: does not stand at zero action: the torso goes from "
-                   f"{height[0]:.3f} m to {end:.3f} m (lowest {low:.3f}; below the bar after "
-                   f"{when * seconds / len(height):.1f} s): stiffer gains or a pose with the "
-                   "centre of mass over the feet")
-  return Finding("ok", None, f"{name}: stands {seconds:g} s at zero action (torso "
-                             f"{height[0]:.3f} -> {end:.3f} m)")
+    return Finding(
+        "error", "roles.*.kp / roles.*.default",
+        f"{name}: does not stand at zero action: the torso goes from "
+        f"{height[0]:.3f} m to {end:.3f} m (lowest {low:.3f}; below the bar after "
+        f"{when * seconds / len(height):.1f} s): stiffer gains or a pose with the "
+        "centre of mass over the feet")
+  return Finding(
+      "ok", None, f"{name}: stands {seconds:g} s at zero action (torso "
+      f"{height[0]:.3f} -> {end:.3f} m)")
 
 
 def gait_cycle(spec: robots.RobotSpec, model: mujoco.MjModel, config: env_config.EnvConfig,
@@ -116,8 +120,10 @@ def gait_cycle(spec: robots.RobotSpec, model: mujoco.MjModel, config: env_config
   home = model.key("home").qpos.copy()
   ids = [model.joint(j).id for j in spec.joints]
   qadr = model.jnt_qposadr[ids]
-  soles = [[model.geom(f"{side}_sole_{k}").id for k in range(len(spec.sole_points[0]))]
+  soles = [[model.geom(f"{side}_sole_{k}").id
+            for k in range(len(spec.sole_points[0]))]
            for side in ("left", "right")]
+
   def lowest(q):
     d.qpos[:] = home
     d.qpos[qadr] = q
@@ -125,10 +131,14 @@ def gait_cycle(spec: robots.RobotSpec, model: mujoco.MjModel, config: env_config
     return [d.geom_xpos[g][:, 2].min() - spec.sole_radius for g in soles]
 
   phases = np.arange(n) / n
-  qs = [home[qadr] + ref_scale * np.where(is_leg, np.maximum(s, 0.0), s)
-        for s in np.sin(2 * np.pi * (phases[:, None] + offsets))[:, ref_limb]]
-  return {"phase": phases, "q": np.array(qs), "sole": np.array([lowest(q) for q in qs]),
-          "stance": np.array(lowest(home[qadr]))}
+  qs = [
+      home[qadr] + ref_scale * np.where(is_leg, np.maximum(s, 0.0), s)
+      for s in np.sin(2 * np.pi * (phases[:, None] + offsets))[:, ref_limb]
+  ]
+  return {
+      "phase": phases, "q": np.array(qs), "sole": np.array([lowest(q) for q in qs]),
+      "stance": np.array(lowest(home[qadr]))
+  }
 
 
 def clearance_findings(cycle: dict[str, np.ndarray], target: float) -> list[Finding]:
@@ -137,15 +147,20 @@ def clearance_findings(cycle: dict[str, np.ndarray], target: float) -> list[Find
   peak = (cycle["sole"] - cycle["stance"]).max(axis=0)
   text = f"swing clearance: left {100 * peak[0]:.1f} cm, right {100 * peak[1]:.1f} cm"
   if abs(peak[0] - peak[1]) > CLEARANCE_TOLERANCE * max(peak.max(), 1e-6):
-    return [Finding("error", "roles.<pitch roles>.mirror",
-                    f"{text}: the feet lift differently (more than {CLEARANCE_TOLERANCE:.0%} "
-                    "apart): a right joint's reference turns the wrong way")]
+    return [
+        Finding(
+            "error", "roles.<pitch roles>.mirror",
+            f"{text}: the feet lift differently (more than {CLEARANCE_TOLERANCE:.0%} "
+            "apart): a right joint's reference turns the wrong way")
+    ]
   out = [Finding("ok", None, f"{text} (they match within {CLEARANCE_TOLERANCE:.0%})")]
   if not 0.5 * target <= peak.mean() <= 2.0 * target:
-    out.append(Finding("warning", "task.feet_height_target",
-                       f"the clearance reward's target {100 * target:.1f} cm is far from the "
-                       f"reference's {100 * peak.mean():.1f} cm: match task.swing_amplitude and "
-                       "task.feet_height_target"))
+    out.append(
+        Finding(
+            "warning", "task.feet_height_target",
+            f"the clearance reward's target {100 * target:.1f} cm is far from the "
+            f"reference's {100 * peak.mean():.1f} cm: match task.swing_amplitude and "
+            "task.feet_height_target"))
   return out
 
 
@@ -161,17 +176,22 @@ def limit_findings(spec: robots.RobotSpec, model: mujoco.MjModel,
     q = cycle["q"][:, k]
     role = spec.role_of(joint)
     if not lo <= spec.default_pose[joint] <= hi:
-      out.append(Finding("error", f"roles.{role}.default",
-                         f"joint '{joint}': default {spec.default_pose[joint]:+.3f} rad is outside "
-                         f"its limits [{lo:+.3f}, {hi:+.3f}]"))
+      out.append(
+          Finding(
+              "error", f"roles.{role}.default",
+              f"joint '{joint}': default {spec.default_pose[joint]:+.3f} rad is outside "
+              f"its limits [{lo:+.3f}, {hi:+.3f}]"))
     elif q.min() < lo - 1e-6 or q.max() > hi + 1e-6:
-      out.append(Finding("error", "task.swing_amplitude",
-                         f"joint '{joint}' ({role}): the reference swings over "
-                         f"[{q.min():+.3f}, {q.max():+.3f}] rad, beyond its limits "
-                         f"[{lo:+.3f}, {hi:+.3f}]"))
+      out.append(
+          Finding(
+              "error", "task.swing_amplitude",
+              f"joint '{joint}' ({role}): the reference swings over "
+              f"[{q.min():+.3f}, {q.max():+.3f}] rad, beyond its limits "
+              f"[{lo:+.3f}, {hi:+.3f}]"))
   if not out:
-    out.append(Finding("ok", None, "every joint's default pose and reference lie within its "
-                                   "limits"))
+    out.append(
+        Finding("ok", None, "every joint's default pose and reference lie within its "
+                "limits"))
   return out
 
 
@@ -227,8 +247,11 @@ def check(robot: str, seconds: float = 10.0, out: Path | None = None,
   """
   spec = robots.load(robot)
   config = env_config.EnvConfig(robot=robot)
-  findings = [Finding("ok", None, f"read {robots.robot_file(robot)}: {len(spec.limbs)} limbs, "
-                                  f"{len(spec.joints)} joints, every name in the model")]
+  findings = [
+      Finding(
+          "ok", None, f"read {robots.robot_file(robot)}: {len(spec.limbs)} limbs, "
+          f"{len(spec.joints)} joints, every name in the model")
+  ]
   model = model_lib.build_model(spec)
   wrong = geometry.mirror_mismatches(model, spec)
   findings += [Finding("error", w.split(" ")[0], w) for w in wrong]
@@ -237,8 +260,10 @@ def check(robot: str, seconds: float = 10.0, out: Path | None = None,
   robot_numbers = env_config.with_robot_numbers(config, spec)
   native = stand_native(spec, seconds)
   findings.append(_stands("MuJoCo C", native, None, seconds, robot_numbers.fall_height))
-  record: dict[str, Any] = {"robot": spec.name, "file": str(robots.robot_file(robot)),
-                            "stand_native_height": native[::5].round(4).tolist()}
+  record: dict[str, Any] = {
+      "robot": spec.name, "file": str(robots.robot_file(robot)),
+      "stand_native_height": native[::5].round(4).tolist()
+  }
   if mjx:
     height, tilt = stand_mjx(robot, seconds)
     findings.append(_stands("MJX", height, tilt, seconds, robot_numbers.fall_height))
@@ -247,8 +272,8 @@ def check(robot: str, seconds: float = 10.0, out: Path | None = None,
   findings += clearance_findings(cycle, robot_numbers.reward_params.feet_height_target)
   findings += limit_findings(spec, model, cycle)
   record.update(foot_axes=foot_axes(spec, model), stride=geometry.stride_plan(spec),
-                clearance_cm=(100 * (cycle["sole"] - cycle["stance"]).max(0)).round(2)
-                .tolist(), findings=[f._asdict() for f in findings])
+                clearance_cm=(100 * (cycle["sole"] - cycle["stance"]).max(0)).round(2).tolist(),
+                findings=[f._asdict() for f in findings])
   findings.append(Finding("ok", None, f"stride reference: {record['stride']}"))
   if out is not None:
     out.mkdir(parents=True, exist_ok=True)

@@ -31,8 +31,7 @@ import numpy as np
 from mash.analysis import evaluation
 from mash.checks import Bound, check_bounds
 from mash.sim import env as env_lib
-from mash.sim import env_config
-from mash.sim import robots
+from mash.sim import env_config, robots
 
 GROUPS = ("kick", "friction", "torso mass", "motor strength", "sensor noise", "latency")
 
@@ -128,19 +127,27 @@ class Condition(NamedTuple):
 def conditions(cfg: BatteryConfig = BatteryConfig()) -> list[Condition]:
   """The battery's conditions, in report order."""
   out = [Condition(f"kick {s:g} m/s", "kick", s, kick=s) for s in cfg.kick_sizes]
-  out += [Condition(f"friction {lo:g}-{hi:g}", "friction", lo, friction=(lo, hi))
-          for lo, hi in cfg.friction_bands]
-  out += [Condition(f"torso mass {100 * m:+.0f} %", "torso mass", m, mass=m)
-          for m in cfg.torso_mass]
+  out += [
+      Condition(f"friction {lo:g}-{hi:g}", "friction", lo, friction=(lo, hi))
+      for lo, hi in cfg.friction_bands
+  ]
+  out += [
+      Condition(f"torso mass {100 * m:+.0f} %", "torso mass", m, mass=m) for m in cfg.torso_mass
+  ]
   a, leg = cfg.motor_strength_all, cfg.motor_strength_one_leg
-  out += [Condition(f"motor strength {100 * a:.0f} % (all)", "motor strength", a, strength=(a, a)),
-          Condition(f"motor strength {100 * leg:.0f} % (left leg)", "motor strength", leg,
-                    strength=(1.0, leg))]
-  out += [Condition("IMU noise", "sensor noise", cfg.imu_noise[0], imu_noise=cfg.imu_noise),
-          Condition("encoder noise", "sensor noise", cfg.encoder_noise[0],
-                    encoder_noise=cfg.encoder_noise)]
-  out += [Condition(f"latency {ms:g} ms", "latency", ms, latency_s=ms / 1000.0)
-          for ms in cfg.latency_ms]
+  out += [
+      Condition(f"motor strength {100 * a:.0f} % (all)", "motor strength", a, strength=(a, a)),
+      Condition(f"motor strength {100 * leg:.0f} % (left leg)", "motor strength", leg,
+                strength=(1.0, leg))
+  ]
+  out += [
+      Condition("IMU noise", "sensor noise", cfg.imu_noise[0], imu_noise=cfg.imu_noise),
+      Condition("encoder noise", "sensor noise", cfg.encoder_noise[0],
+                encoder_noise=cfg.encoder_noise)
+  ]
+  out += [
+      Condition(f"latency {ms:g} ms", "latency", ms, latency_s=ms / 1000.0) for ms in cfg.latency_ms
+  ]
   return out
 
 
@@ -173,14 +180,14 @@ def episodes(conds: list[Condition], cfg: BatteryConfig, left_leg: np.ndarray,
   rng = np.random.default_rng(cfg.seed)
   rows = []
   for c in conds:
-    friction = (np.full(n, -1.0) if c.friction is None
-                else rng.uniform(c.friction[0], c.friction[1], n))
+    friction = (np.full(n, -1.0) if c.friction is None else rng.uniform(
+        c.friction[0], c.friction[1], n))
     strength = np.where(left_leg, c.strength[1], c.strength[0])
-    rows.append(Episodes(
-        kick=c.kick * np.stack([np.cos(angle), np.sin(angle)], -1), friction=friction,
-        mass=np.full(n, 1.0 + c.mass), strength=np.tile(strength, (n, 1)),
-        noise=np.tile([*c.imu_noise, *c.encoder_noise], (n, 1)),
-        delay=np.full(n, int(round(c.latency_s / ctrl_dt)))))
+    rows.append(
+        Episodes(kick=c.kick * np.stack([np.cos(angle), np.sin(angle)], -1), friction=friction,
+                 mass=np.full(n, 1.0 + c.mass), strength=np.tile(strength, (n, 1)),
+                 noise=np.tile([*c.imu_noise, *c.encoder_noise],
+                               (n, 1)), delay=np.full(n, int(round(c.latency_s / ctrl_dt)))))
   return Episodes(*(np.concatenate(parts).astype(np.int32 if name == "delay" else np.float32)
                     for name, parts in zip(Episodes._fields, zip(*rows))))
 
@@ -222,14 +229,15 @@ def _perturbed(state: Any, t: jax.Array, p: Episodes, kick_step: int, root: int)
 MAX_DELAY = 8  # control steps an action can be held back (160 ms at 50 Hz)
 
 
-def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.Array],
-            eps: Episodes, steps: int, kick_step: int, seed: int,
-            episodes_per_condition: int) -> dict[str, np.ndarray]:
+def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]],
+                                                   jax.Array], eps: Episodes, steps: int,
+            kick_step: int, seed: int, episodes_per_condition: int) -> dict[str, np.ndarray]:
   """All episodes in one jitted program: ``alive [E, T]`` (1 until the fall) and
   ``forward_velocity [E, T]`` (torso frame, m/s)."""
   root = env.mj_model.body(env.spec.root_body).id
 
   def episode(key: jax.Array, p: Episodes):
+
     def step(carry, t):
       state, queue = carry
       state = _perturbed(state, t, p, kick_step, root)
@@ -255,8 +263,9 @@ def battery_env_config(trained: env_config.EnvConfig, cfg: BatteryConfig) -> env
   eval_cfg = evaluation.EvalConfig(command_vx=cfg.command_vx, num_episodes=cfg.episodes,
                                    episode_s=cfg.episode_s, seed=cfg.seed)
   env_cfg = evaluation.eval_env_config(trained, eval_cfg)
-  return dataclasses.replace(env_cfg, randomization=dataclasses.replace(
-      env_cfg.randomization, kick_velocity=(0.0, 0.0), kick_yaw_rate=(0.0, 0.0)))
+  return dataclasses.replace(
+      env_cfg, randomization=dataclasses.replace(env_cfg.randomization, kick_velocity=(0.0, 0.0),
+                                                 kick_yaw_rate=(0.0, 0.0)))
 
 
 def summarize(conds: list[Condition], alive: np.ndarray, forward_velocity: np.ndarray,
@@ -268,9 +277,11 @@ def summarize(conds: list[Condition], alive: np.ndarray, forward_velocity: np.nd
   for i, c in enumerate(conds):
     a, v = alive[i * n:(i + 1) * n], forward_velocity[i * n:(i + 1) * n]
     survived = a.min(axis=1) > 0
-    row = {"name": c.name, "group": c.group, "value": c.value, "episodes": n,
-           "survival": float(survived.mean()),
-           "forward_speed": float((v * a).sum() / max(a.sum(), 1.0))}
+    row = {
+        "name": c.name, "group": c.group, "value": c.value, "episodes": n,
+        "survival": float(survived.mean()), "forward_speed": float(
+            (v * a).sum() / max(a.sum(), 1.0))
+    }
     if c.kick > 0:
       row["survival_by_direction"] = [float(survived[d::k].mean()) for d in range(k)]
     rows.append(row)
@@ -284,8 +295,10 @@ def left_leg_mask(spec: robots.RobotSpec) -> np.ndarray:
   return np.array([j in left.joints for j in spec.joints])
 
 
-def run(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.Array],
-        cfg: BatteryConfig = BatteryConfig()) -> list[dict[str, Any]]:
+def run(
+    env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]],
+                                           jax.Array], cfg: BatteryConfig = BatteryConfig()
+) -> list[dict[str, Any]]:
   """The whole battery on ``env`` (built from :func:`battery_env_config`) for ``policy``
   (``obs -> flat action``, unbatched): :func:`summarize`'s rows, one per condition."""
   check_config(cfg)

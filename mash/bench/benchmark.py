@@ -24,12 +24,9 @@ import jax.numpy as jnp
 from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo_train
 
-from mash.bench import brax_compat
-from mash.bench import throughput
+from mash.bench import brax_compat, throughput
 from mash.rl import config as train_config
-from mash.rl import losses
-from mash.rl import mappo
-from mash.rl import normalization
+from mash.rl import losses, mappo, normalization
 from mash.rl import trainer as trainer_lib
 from mash.sim import env as env_lib
 from mash.sim import env_config
@@ -65,9 +62,9 @@ def _peak_device_mb() -> float | None:
 def bench_train_config(batch: int, unroll: int, iterations: int) -> train_config.TrainConfig:
   """The default training config at ``batch`` envs, ``unroll`` steps per rollout, ``iterations``
   per training call, with the benchmark's network sizes (:data:`BENCH_HIDDEN`)."""
-  return dataclasses.replace(
-      train_config.TrainConfig(), num_envs=batch, unroll_length=unroll,
-      iterations_per_call=iterations, actor_hidden=BENCH_HIDDEN, critic_hidden=BENCH_HIDDEN)
+  return dataclasses.replace(train_config.TrainConfig(), num_envs=batch, unroll_length=unroll,
+                             iterations_per_call=iterations, actor_hidden=BENCH_HIDDEN,
+                             critic_hidden=BENCH_HIDDEN)
 
 
 def bench_env_config(task: str, impl: str, batch: int, robot: str = "booster_t1",
@@ -112,10 +109,10 @@ def brax_ppo_throughput(env_cfg: env_config.EnvConfig, train_cfg: train_config.T
   env = brax_compat.BraxView(env_cfg)
   per_epoch = train_cfg.num_envs * train_cfg.unroll_length * train_cfg.iterations_per_call
   stamps = []
-  factory = functools.partial(
-      ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=train_cfg.actor_hidden,
-      value_hidden_layer_sizes=train_cfg.critic_hidden, policy_obs_key="state",
-      value_obs_key="privileged_state")
+  factory = functools.partial(ppo_networks.make_ppo_networks,
+                              policy_hidden_layer_sizes=train_cfg.actor_hidden,
+                              value_hidden_layer_sizes=train_cfg.critic_hidden,
+                              policy_obs_key="state", value_obs_key="privileged_state")
   # Brax runs num_evals - 1 training epochs of num_timesteps / (num_evals - 1) steps each and, with
   # run_evals off, calls progress_fn after each. The first epoch carries the compile; under JAX 0.10
   # Brax's pmapped epoch compiles once more on its second call (measured: the same program, 24 s at
@@ -123,15 +120,24 @@ def brax_ppo_throughput(env_cfg: env_config.EnvConfig, train_cfg: train_config.T
   num_evals = calls + 3
   t_start = time.perf_counter()
   ppo_train.train(
-      environment=env, num_timesteps=per_epoch * (num_evals - 1), num_envs=train_cfg.num_envs,
-      episode_length=1000, unroll_length=train_cfg.unroll_length,
+      environment=env,
+      num_timesteps=per_epoch * (num_evals - 1),
+      num_envs=train_cfg.num_envs,
+      episode_length=1000,
+      unroll_length=train_cfg.unroll_length,
       # Brax's batch_size counts trajectories of unroll_length per minibatch, not transitions.
       batch_size=train_cfg.num_envs // train_cfg.num_minibatches,
-      num_minibatches=train_cfg.num_minibatches, num_updates_per_batch=train_cfg.num_epochs,
-      learning_rate=train_cfg.learning_rate, entropy_cost=train_cfg.entropy_coef,
-      discounting=train_cfg.gamma, gae_lambda=train_cfg.gae_lambda,
-      normalize_observations=True, network_factory=factory, num_evals=num_evals,
-      run_evals=False, progress_fn=lambda step, metrics: stamps.append(time.perf_counter()),
+      num_minibatches=train_cfg.num_minibatches,
+      num_updates_per_batch=train_cfg.num_epochs,
+      learning_rate=train_cfg.learning_rate,
+      entropy_cost=train_cfg.entropy_coef,
+      discounting=train_cfg.gamma,
+      gae_lambda=train_cfg.gae_lambda,
+      normalize_observations=True,
+      network_factory=factory,
+      num_evals=num_evals,
+      run_evals=False,
+      progress_fn=lambda step, metrics: stamps.append(time.perf_counter()),
       seed=0)
   epochs = [b - a for a, b in zip(stamps[:-1], stamps[1:])]
   print(f"brax ppo: first epoch {stamps[0] - t_start:.1f} s, then {[round(e, 2) for e in epochs]}",
@@ -147,10 +153,10 @@ def _synthetic_batch(groups, n: int, critic_obs_size: int) -> losses.LossBatch:
   normal = lambda shape: jax.random.normal(next(keys), shape)
   obs = {g.name: normal((n, g.n_agents, g.obs_dim)) for g in groups}
   obs["critic"] = normal((n, critic_obs_size))
-  return losses.LossBatch(
-      obs=obs, actions={g.name: normal((n, g.n_agents, g.act_dim)) for g in groups},
-      log_probs=jnp.zeros((n, n_agents)), values=jnp.zeros((n, n_agents)),
-      advantages=normal((n, n_agents)), returns=jnp.zeros((n, n_agents)), weights=jnp.ones((n,)))
+  return losses.LossBatch(obs=obs, actions={
+      g.name: normal((n, g.n_agents, g.act_dim)) for g in groups
+  }, log_probs=jnp.zeros((n, n_agents)), values=jnp.zeros((n, n_agents)), advantages=normal(
+      (n, n_agents)), returns=jnp.zeros((n, n_agents)), weights=jnp.ones((n,)))
 
 
 def update_seconds(env: env_lib.MashEnv, train_cfg: train_config.TrainConfig,
@@ -176,16 +182,17 @@ def train_breakdown(env: env_lib.MashEnv, train_cfg: train_config.TrainConfig,
   actions), the updates alone (:func:`update_seconds`), and the whole training call; the rest is
   the networks in the rollout, GAE and bookkeeping. ``train_vs_env_ceiling`` is the train/env
   ratio the updates allow even with no other cost."""
-  sps_env, _ = throughput.env_steps(env, train_cfg.num_envs, train_cfg.unroll_length,
-                                    repeats=calls)
+  sps_env, _ = throughput.env_steps(env, train_cfg.num_envs, train_cfg.unroll_length, repeats=calls)
   steps = train_cfg.num_envs * train_cfg.unroll_length
   t_env = steps / sps_env
   t_all = steps / train_throughput(env, train_cfg, calls)[0]
   t_updates = update_seconds(env, train_cfg)
-  return {"env_rollout_s": t_env, "updates_alone_s": t_updates,
-          "rest_s": t_all - t_env - t_updates, "iteration_s": t_all,
-          "train_vs_env": t_env / t_all, "train_vs_env_ceiling": t_env / (t_env + t_updates),
-          "epochs": train_cfg.num_epochs, "minibatches": train_cfg.num_minibatches}
+  return {
+      "env_rollout_s": t_env, "updates_alone_s": t_updates, "rest_s": t_all - t_env - t_updates,
+      "iteration_s": t_all, "train_vs_env": t_env / t_all,
+      "train_vs_env_ceiling": t_env / (t_env + t_updates), "epochs": train_cfg.num_epochs,
+      "minibatches": train_cfg.num_minibatches
+  }
 
 
 def breakdown(task: str, batch: int | None, impl: str, robot: str, out: Path) -> dict:
@@ -198,8 +205,8 @@ def breakdown(task: str, batch: int | None, impl: str, robot: str, out: Path) ->
     print(f"breakdown: {partition}", file=sys.stderr, flush=True)
     env = env_lib.MashEnv(bench_env_config(task, impl, batch, robot, partition=partition))
     result[partition] = train_breakdown(env, cfg)
-  result["updates_alone_mash_vs_ppo"] = (result["mash"]["updates_alone_s"]
-                                         / result["ppo"]["updates_alone_s"])
+  result["updates_alone_mash_vs_ppo"] = (result["mash"]["updates_alone_s"] /
+                                         result["ppo"]["updates_alone_s"])
   out.write_text(json.dumps(result, indent=2))
   return result
 
@@ -208,13 +215,20 @@ def ratios(result: dict) -> dict:
   """``env_vs_physics``, ``mash_train_vs_env``, ``mash_vs_ppo``, ``mash_vs_brax_ppo``: those whose
   two figures were measured."""
   tr = result.get("train_env_steps_per_s", {})
-  figures = {"physics": result.get("physics_steps_per_s"),
-             "env_physics": result.get("env_physics_equivalent_per_s"),
-             "env": result.get("env_steps_per_s"), **tr}
-  pairs = {"env_vs_physics": ("env_physics", "physics"), "mash_train_vs_env": ("mash", "env"),
-           "mash_vs_ppo": ("mash", "ppo"), "mash_vs_brax_ppo": ("mash", "brax_ppo")}
-  return {name: figures[a] / figures[b] for name, (a, b) in pairs.items()
-          if figures.get(a) is not None and figures.get(b) is not None}
+  figures = {
+      "physics": result.get("physics_steps_per_s"),
+      "env_physics": result.get("env_physics_equivalent_per_s"),
+      "env": result.get("env_steps_per_s"), **tr
+  }
+  pairs = {
+      "env_vs_physics": ("env_physics", "physics"), "mash_train_vs_env": ("mash", "env"),
+      "mash_vs_ppo": ("mash", "ppo"), "mash_vs_brax_ppo": ("mash", "brax_ppo")
+  }
+  return {
+      name: figures[a] / figures[b]
+      for name, (a, b) in pairs.items()
+      if figures.get(a) is not None and figures.get(b) is not None
+  }
 
 
 class _Progress:
@@ -267,8 +281,8 @@ def _measure_training(env_cfg: env_config.EnvConfig, train_cfg: train_config.Tra
       progress.save()
   if "brax_ppo" in progress.todo:
     progress.start("brax_ppo", "training: brax_ppo")
-    tr["brax_ppo"], result["compile_s"]["brax_ppo"] = brax_ppo_throughput(env_cfg, train_cfg,
-                                                                          calls=2)
+    tr["brax_ppo"], result["compile_s"]["brax_ppo"] = brax_ppo_throughput(
+        env_cfg, train_cfg, calls=2)
 
 
 def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = None,
@@ -292,10 +306,11 @@ def run_benchmark(quick: bool, batch: int | None, task: str, out: Path | None = 
   batch = batch or (256 if quick else 1024)
   env_cfg = bench_env_config(task, impl, batch, robot)
   env = env_lib.MashEnv(env_cfg)
-  result = {"device": device_kind(), "backend": jax.default_backend(), "robot": env.spec.name,
-            "n_devices": jax.device_count(), "impl": impl, "batch": batch,
-            "substeps": env.n_substeps, "task": task, "quick": quick, "date": now(),
-            "stages": list(stages), "complete": False}
+  result = {
+      "device": device_kind(), "backend": jax.default_backend(), "robot": env.spec.name,
+      "n_devices": jax.device_count(), "impl": impl, "batch": batch, "substeps": env.n_substeps,
+      "task": task, "quick": quick, "date": now(), "stages": list(stages), "complete": False
+  }
   progress = _Progress(result, [s for s in STAGES if s in stages], out)
   _measure_env(env, batch, 20 if quick else 50, progress)
   train_cfg = bench_train_config(batch, unroll=24, iterations=2 if quick else 4)

@@ -22,6 +22,7 @@ def _device_put_replicated(tree, devices):
   """One copy of every leaf per device, stacked on a new leading axis, laid out as ``jax.pmap``
   lays out its outputs, with strong dtypes (so Brax's pmapped training epoch compiles once): what
   ``jax.device_put_replicated`` did before JAX 0.10 removed it."""
+
   def stack(x):
     x = jnp.asarray(x)
     # A named dtype drops weak typing: the epoch returns strong types, and a weak leaf going in
@@ -45,8 +46,7 @@ class BraxView(brax_base.Env):
   """``MashEnv`` (single-agent partition) with Brax's observation dict and no inner auto-reset."""
 
   def __init__(self, config: env_config.EnvConfig):
-    config = dataclasses.replace(config, partition="ppo", auto_reset=False,
-                                 episode_length=2**30)
+    config = dataclasses.replace(config, partition="ppo", auto_reset=False, episode_length=2**30)
     self.env = env_lib.MashEnv(config)
 
   def _obs(self, obs):
@@ -57,14 +57,17 @@ class BraxView(brax_base.Env):
     return s.replace(obs=self._obs(s.obs))
 
   def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
-    inner = state.replace(obs={"body": state.obs["state"][None], "critic": state.obs["privileged_state"]})
+    inner = state.replace(
+        obs={"body": state.obs["state"][None], "critic": state.obs["privileged_state"]})
     s = self.env.step(inner, action)
     return s.replace(obs=self._obs(s.obs))
 
   @property
   def observation_size(self):
-    return {"state": (self.env.agent_groups[0].obs_dim,),
-            "privileged_state": (self.env.critic_obs_size,)}
+    return {
+        "state": (self.env.agent_groups[0].obs_dim,), "privileged_state": (self.env.critic_obs_size,
+                                                                          )
+    }
 
   @property
   def action_size(self) -> int:

@@ -41,7 +41,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec as P
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 from matplotlib.figure import Figure
 
 from mash import errors
@@ -140,7 +141,9 @@ def _timed(fn: Callable, args: tuple, repeats: int, sync: Callable[[], None]) ->
 def _rollout_fn(env: env_lib.MashEnv, axis_name: str | None = None) -> Callable:
   """``rollout(state, actions [T, B, A]) -> total reward``: ``T`` batched env steps, with one
   ``psum`` of the reward over ``axis_name`` per control step when it is given."""
+
   def rollout(state, actions):
+
     def body(carry, a):
       s, total = carry
       s = jax.vmap(env.step)(s, a)
@@ -148,8 +151,10 @@ def _rollout_fn(env: env_lib.MashEnv, axis_name: str | None = None) -> Callable:
       if axis_name is not None:
         r = jax.lax.psum(r, axis_name)  # one cross-process sync per control step
       return (s, total + r), ()
+
     (s, total), _ = jax.lax.scan(body, (state, jnp.zeros(())), actions)
     return total
+
   return rollout
 
 
@@ -168,15 +173,18 @@ def _env_step_worker(config: ScalingConfig, worker: Worker) -> dict:
                                                                  np.asarray(x))
     state = jax.tree.map(lambda x: put(x, P("d")), state)
     actions = put(actions, P(None, "d"))
-    fn = jax.jit(jax.shard_map(_rollout_fn(env, "d"), mesh=mesh,
-                               in_specs=(P("d"), P(None, "d")), out_specs=P(), check_vma=False))
+    fn = jax.jit(
+        jax.shard_map(_rollout_fn(env, "d"), mesh=mesh, in_specs=(P("d"), P(None, "d")),
+                      out_specs=P(), check_vma=False))
     sync = lambda: distributed.barrier("timed")
   else:
     fn = jax.jit(_rollout_fn(env))
     sync = lambda: _wait_for_peers(worker.sync_dir, pid, n)
   timing = _timed(fn, (state, actions), config.repeats, sync)
-  return {**timing, "local_batch": local_batch, "substeps": env.n_substeps,
-          "env_steps": local_batch * config.steps}
+  return {
+      **timing, "local_batch": local_batch, "substeps": env.n_substeps,
+      "env_steps": local_batch * config.steps
+  }
 
 
 def _train_worker(config: ScalingConfig, worker: Worker) -> dict:
@@ -195,8 +203,10 @@ def _train_worker(config: ScalingConfig, worker: Worker) -> dict:
 
   timing = _timed(call, (), config.repeats, lambda: distributed.barrier("timed"))
   local_batch = config.train_batch // worker.num_processes
-  return {**timing, "local_batch": local_batch, "substeps": env.n_substeps,
-          "env_steps": local_batch * cfg.unroll_length * cfg.iterations_per_call}
+  return {
+      **timing, "local_batch": local_batch, "substeps": env.n_substeps,
+      "env_steps": local_batch * cfg.unroll_length * cfg.iterations_per_call
+  }
 
 
 def run_worker(config: ScalingConfig, worker: Worker) -> None:
@@ -240,12 +250,16 @@ def _worker_env(config: ScalingConfig) -> dict[str, str]:
 
 def _worker_command(config: ScalingConfig, worker: Worker) -> list[str]:
   """The command line that runs ``worker`` (:data:`WORKER_MODULE` with its hidden flags)."""
-  return [sys.executable, "-m", WORKER_MODULE, "--worker", worker.variant,
-          "--process-id", str(worker.process_id), "--num-processes", str(worker.num_processes),
-          "--coordinator", worker.coordinator, "--sync-dir", worker.sync_dir,
-          "--result", worker.result, "--batch", str(config.batch),
-          "--steps", str(config.steps), "--repeats", str(config.repeats), "--task", config.task,
-          "--train-batch", str(config.train_batch), "--platform", config.platform]
+  return [
+      sys.executable, "-m", WORKER_MODULE, "--worker", worker.variant, "--process-id",
+      str(worker.process_id), "--num-processes",
+      str(worker.num_processes), "--coordinator", worker.coordinator, "--sync-dir", worker.sync_dir,
+      "--result", worker.result, "--batch",
+      str(config.batch), "--steps",
+      str(config.steps), "--repeats",
+      str(config.repeats), "--task", config.task, "--train-batch",
+      str(config.train_batch), "--platform", config.platform
+  ]
 
 
 def _wait(procs: list[subprocess.Popen]) -> str | None:
@@ -276,8 +290,9 @@ def _launch(variant: str, num_processes: int, config: ScalingConfig, tmp: Path) 
       worker = Worker(variant, i, num_processes, coordinator, str(sync_dir),
                       str(sync_dir / f"result_{i}.json"))
       logs.append(open(sync_dir / f"worker_{i}.log", "w"))
-      procs.append(subprocess.Popen(_worker_command(config, worker), env=env, cwd=REPO_ROOT,
-                                    stdout=logs[-1], stderr=subprocess.STDOUT))
+      procs.append(
+          subprocess.Popen(_worker_command(config, worker), env=env, cwd=REPO_ROOT, stdout=logs[-1],
+                           stderr=subprocess.STDOUT))
     failed = _wait(procs)
   finally:
     for p in procs:
@@ -299,11 +314,12 @@ def _row(variant: str, workers: list[dict]) -> dict:
     total = sum(w["env_steps"] for w in workers) / max(w["run_s"] for w in workers)
   else:
     total = sum(w["env_steps"] / w["run_s"] for w in workers)
-  return {"variant": variant, "processes": len(workers),
-          "envs_per_process": workers[0]["local_batch"],
-          "env_steps_per_s": total, "physics_steps_per_s": total * workers[0]["substeps"],
-          "cpu_cores_used": sum(w["cpu_cores_used"] for w in workers),
-          "compile_s": max(w["compile_s"] for w in workers)}
+  return {
+      "variant": variant, "processes": len(workers), "envs_per_process": workers[0]["local_batch"],
+      "env_steps_per_s": total, "physics_steps_per_s": total * workers[0]["substeps"],
+      "cpu_cores_used": sum(w["cpu_cores_used"] for w in workers
+                           ), "compile_s": max(w["compile_s"] for w in workers)
+  }
 
 
 def _summary(rows: list[dict]) -> dict:
@@ -313,10 +329,13 @@ def _summary(rows: list[dict]) -> dict:
     base = by["train_one_process" if r["variant"].startswith("train") else "one_process"]
     r["ratio_vs_one_process"] = r["env_steps_per_s"] / base["env_steps_per_s"]
   summary = {
-      "second_core_buys": by["two_process_mesh"]["ratio_vs_one_process"],
-      "second_core_buys_without_collective": by["two_process_independent"]["ratio_vs_one_process"],
-      "collective_cost": 1.0 - (by["two_process_mesh"]["env_steps_per_s"]
-                                / by["two_process_independent"]["env_steps_per_s"]),
+      "second_core_buys":
+          by["two_process_mesh"]["ratio_vs_one_process"],
+      "second_core_buys_without_collective":
+          by["two_process_independent"]["ratio_vs_one_process"],
+      "collective_cost":
+          1.0 - (by["two_process_mesh"]["env_steps_per_s"] /
+                 by["two_process_independent"]["env_steps_per_s"]),
   }
   if "train_two_process" in by:
     summary["second_core_buys_training"] = by["train_two_process"]["ratio_vs_one_process"]
@@ -341,11 +360,13 @@ def run_scaling(config: ScalingConfig) -> dict:
     print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
   shutil.rmtree(tmp, ignore_errors=True)
   summary = _summary(rows)
-  return {"batch": config.batch, "steps": config.steps, "repeats": config.repeats,
-          "task": config.task, "platform": config.platform,
-          "cpu_count": multiprocessing.cpu_count(), "load_average_at_start": load_at_start,
-          "train_batch": config.train_batch if config.train else None,
-          "date": time.strftime("%Y-%m-%d %H:%M:%S"), "summary": summary, "rows": rows}
+  return {
+      "batch": config.batch, "steps": config.steps, "repeats": config.repeats, "task": config.task,
+      "platform": config.platform, "cpu_count": multiprocessing.cpu_count(),
+      "load_average_at_start": load_at_start,
+      "train_batch": config.train_batch if config.train else None,
+      "date": time.strftime("%Y-%m-%d %H:%M:%S"), "summary": summary, "rows": rows
+  }
 
 
 def write_report(result: dict, stem: Path) -> None:
@@ -363,12 +384,15 @@ def write_report(result: dict, stem: Path) -> None:
       f"`python -m {WORKER_MODULE} --batch {result['batch']} --steps "
       f"{result['steps']}`, {result['date']}, {result['cpu_count']} CPUs, load average "
       f"{result['load_average_at_start']:.1f} at the start (shared machine: quote ratios).", "",
-      "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+      "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)
+  ]
   lines += ["| " + " | ".join(fmt(r[c]) for c in cols) + " |" for r in result["rows"]]
-  lines += ["", f"Two processes on the global 2-device mesh step **{s['second_core_buys']:.2f}x** "
-            f"the envs/s of one process (without the per-step collective: "
-            f"{s['second_core_buys_without_collective']:.2f}x; the collective costs "
-            f"{100 * s['collective_cost']:.0f} %)."]
+  lines += [
+      "", f"Two processes on the global 2-device mesh step **{s['second_core_buys']:.2f}x** "
+      f"the envs/s of one process (without the per-step collective: "
+      f"{s['second_core_buys_without_collective']:.2f}x; the collective costs "
+      f"{100 * s['collective_cost']:.0f} %)."
+  ]
   if "second_core_buys_training" in s:
     lines.append(f"MASH training (batch {result['train_batch']}): "
                  f"{s['second_core_buys_training']:.2f}x.")
@@ -385,12 +409,14 @@ def _plot(rows: list[dict], path: Path) -> None:
   colors = ["tab:green" if r["variant"].startswith("train") else "tab:blue" for r in rows]
   bars = ax.bar(range(len(rows)), [r["env_steps_per_s"] for r in rows], color=colors)
   for bar, r in zip(bars, rows):
-    ax.annotate(f"{r['ratio_vs_one_process']:.2f}x", (bar.get_x() + bar.get_width() / 2,
-                bar.get_height()), ha="center", va="bottom", fontsize=8)
+    ax.annotate(f"{r['ratio_vs_one_process']:.2f}x",
+                (bar.get_x() + bar.get_width() / 2, bar.get_height()), ha="center", va="bottom",
+                fontsize=8)
   ax.set_xticks(range(len(rows)), names, rotation=20, ha="right", fontsize=8)
   ax.set_ylabel("env steps / s")
-  ax.set_title("one process vs two joined by jax.distributed (blue: env step, "
-               "green: MASH training)", fontsize=8)
+  ax.set_title(
+      "one process vs two joined by jax.distributed (blue: env step, "
+      "green: MASH training)", fontsize=8)
   ax.grid(axis="y", alpha=0.3)
   fig.tight_layout()
   fig.savefig(path, dpi=120)

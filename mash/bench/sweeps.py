@@ -14,8 +14,7 @@ import mujoco
 import numpy as np
 from matplotlib.figure import Figure
 
-from mash.bench import benchmark
-from mash.bench import throughput
+from mash.bench import benchmark, throughput
 from mash.sim import env as env_lib
 from mash.sim import env_config
 from mash.sim import model as model_lib
@@ -24,8 +23,8 @@ PHYSICS_SETTINGS = ((0.005, 1), (0.005, 3), (0.004, 1), (0.002, 3))  # (sim_dt, 
 BATCH_CURVES = ("physics_steps_per_s", "env_steps_per_s", "train_env_steps_per_s")
 
 
-def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
-                impl: str = "jax", robot: str = "booster_t1") -> list[dict]:
+def sweep_batch(batches: list[int], task: str, stem: Path | None = None, impl: str = "jax",
+                robot: str = "booster_t1") -> list[dict]:
   """Physics, env and MASH training throughput per batch size (one process), through MJX's
   ``impl``.
 
@@ -38,9 +37,10 @@ def sweep_batch(batches: list[int], task: str, stem: Path | None = None,
     envs, _ = throughput.env_steps(env, b, 10, repeats=1)
     cfg = benchmark.bench_train_config(b, unroll=16, iterations=1)
     train_sps, _ = benchmark.train_throughput(env, cfg, calls=1)
-    rows.append({"batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
-                 "train_env_steps_per_s": train_sps, "device": benchmark.device_kind(),
-                 "impl": impl})
+    rows.append({
+        "batch": b, "physics_steps_per_s": phys, "env_steps_per_s": envs,
+        "train_env_steps_per_s": train_sps, "device": benchmark.device_kind(), "impl": impl
+    })
     if stem is not None:
       write_table(rows, stem, "batch")
   return rows
@@ -55,12 +55,14 @@ def _standing(env: env_lib.MashEnv, sim_dt: float, seconds: float = 10.0) -> dic
   q0, kp, kd, lim = lay.default_pose, lay.kp, lay.kd, lay.torque_limit
   start = d.qpos[:3].copy()
   for _ in range(int(seconds / sim_dt)):
-    d.ctrl[addr.actuator] = np.clip(kp * (q0 - d.qpos[addr.qpos]) - kd * d.qvel[addr.dof],
-                                    -lim, lim)
+    d.ctrl[addr.actuator] = np.clip(kp * (q0 - d.qpos[addr.qpos]) - kd * d.qvel[addr.dof], -lim,
+                                    lim)
     mujoco.mj_step(m, d)
-  return {"standing_drift_xy_m": float(np.linalg.norm(d.qpos[:2] - start[:2])),
-          "standing_height_change_m": float(d.qpos[2] - start[2]),
-          "upright_after_10s": bool(d.qpos[2] > 0.6)}
+  return {
+      "standing_drift_xy_m": float(np.linalg.norm(d.qpos[:2] - start[:2])),
+      "standing_height_change_m": float(d.qpos[2] - start[2]),
+      "upright_after_10s": bool(d.qpos[2] > 0.6)
+  }
 
 
 def sweep_physics(task: str, robot: str = "booster_t1", stem: Path | None = None) -> list[dict]:
@@ -74,9 +76,11 @@ def sweep_physics(task: str, robot: str = "booster_t1", stem: Path | None = None
     physics = model_lib.PhysicsConfig(sim_dt=sim_dt, iterations=iterations)
     env = env_lib.MashEnv(env_config.EnvConfig(task=task, robot=robot, physics=physics))
     phys, _ = throughput.bare_physics(env, 256, 10, repeats=1)
-    rows.append({"sim_dt": sim_dt, "iterations": iterations, "substeps": env.n_substeps,
-                 "physics_steps_per_s": phys, "control_steps_per_s": phys / env.n_substeps,
-                 **_standing(env, sim_dt)})
+    rows.append({
+        "sim_dt": sim_dt, "iterations": iterations, "substeps": env.n_substeps,
+        "physics_steps_per_s": phys, "control_steps_per_s": phys / env.n_substeps,
+        **_standing(env, sim_dt)
+    })
   if stem is not None:
     write_table(rows, stem, "sim_dt")
   return rows
@@ -90,8 +94,9 @@ def write_table(rows: list[dict], stem: Path, x: str) -> None:
   keys = [k for k in rows[0] if k != x and isinstance(rows[0][k], (int, float))]
   lines = ["| " + " | ".join([x] + keys) + " |", "|" + "---|" * (len(keys) + 1)]
   for r in rows:
-    lines.append("| " + " | ".join([str(r[x])] + [f"{r[k]:,.3g}" if isinstance(r[k], float)
-                                                    else str(r[k]) for k in keys]) + " |")
+    lines.append("| " + " | ".join(
+        [str(r[x])] + [f"{r[k]:,.3g}" if isinstance(r[k], float) else str(r[k]) for k in keys]) +
+                 " |")
   stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
   if x == "batch":
     _plot_batch(rows, stem.with_suffix(".png"))

@@ -51,8 +51,10 @@ def bare_physics(env: env_lib.MashEnv, batch: int, control_steps: int,
 
   @jax.jit
   def run(data):
+
     def body(d, _):
       return jax.vmap(lambda d: mjx.step(model, d))(d), ()
+
     d, _ = jax.lax.scan(body, data, None, length=n)
     return d.qpos
 
@@ -68,8 +70,10 @@ def env_steps(env: env_lib.MashEnv, batch: int, control_steps: int,
 
   @jax.jit
   def run(state, actions):
+
     def body(s, a):
       return jax.vmap(env.step)(s, a), ()
+
     s, _ = jax.lax.scan(body, state, actions)
     return s.reward
 

@@ -50,13 +50,13 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
-from mash.sim import agents
-from mash.sim import layout as layout_lib
 from mash.deploy import policy as policy_lib
+from mash.errors import InputError
 from mash.rl import networks as nets
 from mash.rl import normalization
+from mash.sim import agents
 from mash.sim import env as env_lib
-from mash.errors import InputError
+from mash.sim import layout as layout_lib
 
 OPSET = 17
 IR_VERSION = 8  # the IR of opset 17: loads in onnxruntime >= 1.11 and most embedded runtimes
@@ -98,8 +98,10 @@ def policy_parts(policy, env=None) -> PolicyParts:
   normalizer = None
   if policy.normalizer is not None and cfg.train.normalize_observations:
     normalizer = jax.device_get(policy.normalizer)
-  meta = {"task": cfg.task, "algo": cfg.algo, "ablation": cfg.ablation,
-          "checkpoint_iteration": int(policy.iteration), "seed": int(policy.seed)}
+  meta = {
+      "task": cfg.task, "algo": cfg.algo, "ablation": cfg.ablation,
+      "checkpoint_iteration": int(policy.iteration), "seed": int(policy.seed)
+  }
   return PolicyParts(env, policy_lib.actor_networks(policy, env), jax.device_get(policy.params),
                      normalizer, float(cfg.train.obs_clip), bool(cfg.train.share_actor), meta)
 
@@ -131,10 +133,10 @@ def feature_segments(lay: layout_lib.Layout) -> layout_lib.Segments:
   command | 0 | 1]`` (one sin and one cos per limb, ``lay.limbs`` order) as named segments."""
   J, A, L = lay.n_joints, lay.n_actions, lay.n_limbs
   seg = layout_lib.Segment
-  return layout_lib.Segments((
-      seg("q", J), seg("dq", J), seg("last_action", A), seg("sin", L), seg("cos", L),
-      seg("euler", 3), seg("ang_vel", 3), seg("command", layout_lib.COMMAND_SIZE), seg("zero", 1),
-      seg("one", 1)))
+  return layout_lib.Segments(
+      (seg("q", J), seg("dq", J), seg("last_action", A), seg("sin", L), seg("cos", L),
+       seg("euler", 3), seg("ang_vel", 3), seg("command", layout_lib.COMMAND_SIZE), seg("zero", 1),
+       seg("one", 1)))
 
 
 def layout(env) -> Layout:
@@ -160,13 +162,13 @@ def layout(env) -> Layout:
           joints: list[int], k: int) -> list[int]:
     """Feature columns of agent ``k``'s observation: ``joints`` its joint positions."""
     source = {
-        "q": [col["q"][j] for j in joints], "dq": [col["dq"][j] for j in joints],
-        "last_action": ([col["last_action"][pos_in_action[j]] if j in pos_in_action else zero
-                         for j in joints] if group.name != layout_lib.BODY
-                        else col["last_action"]),
-        "phase": [c for l in limbs for c in phase_cols(l)],
-        "euler": col["euler"], "ang_vel": col["ang_vel"], "command": col["command"],
-        "agent_id": [one if m == k else zero for m in range(group.n_agents)]}
+        "q": [col["q"][j] for j in joints], "dq": [col["dq"][j] for j in joints], "last_action":
+            ([col["last_action"][pos_in_action[j]] if j in pos_in_action else zero for j in joints]
+             if group.name != layout_lib.BODY else col["last_action"]), "phase": [
+                 c for l in limbs for c in phase_cols(l)
+             ], "euler": col["euler"], "ang_vel": col["ang_vel"], "command": col["command"],
+        "agent_id": [one if m == k else zero for m in range(group.n_agents)]
+    }
     unknown = [n for n in segments.names if n not in source]
     if unknown:
       raise ExportError(f"group '{group.name}': no feature column for observation segment(s) "
@@ -179,8 +181,11 @@ def layout(env) -> Layout:
     if group.name == layout_lib.BODY:
       rows = [row(group, segments, limbs, ctrl, 0)]
     else:
-      rows = [row(group, segments, (limb,), [int(i) for i in lay.limb_joints[limb]], k)
-              for k, limb in enumerate(limbs)]
+      rows = [
+          row(group, segments, (limb,), [int(i)
+                                         for i in lay.limb_joints[limb]], k)
+          for k, limb in enumerate(limbs)
+      ]
     table = np.asarray(rows, np.int64)
     if table.shape != (group.n_agents, group.obs_dim):
       raise ExportError(f"group '{group.name}': observation table {table.shape} does not match "
@@ -233,40 +238,64 @@ def metadata(parts: PolicyParts) -> dict[str, str]:
   ctrl = [int(i) for i in lay.controlled]
   joints = list(lay.joints)
   props = {
-      "format": "mash-policy/1",
-      "robot": spec.name,
-      "joint_order": json.dumps(joints),
-      "controlled_joints": json.dumps([joints[i] for i in ctrl]),
-      "controlled_index": json.dumps(ctrl),
-      "default_pose_rad": json.dumps([float(x) for x in lay.default_pose]),
-      "kp": json.dumps([float(x) for x in lay.kp]),
-      "kd": json.dumps([float(x) for x in lay.kd]),
-      "torque_limit_nm": json.dumps([float(x) for x in lay.torque_limit]),
-      "action_scale": repr(float(cfg.action_scale)),
-      "action_clip": repr(float(cfg.action_clip)),
-      "ctrl_dt_s": repr(float(cfg.ctrl_dt)),
-      "control_rate_hz": repr(1.0 / float(cfg.ctrl_dt)),
-      "gait_cycle_s": repr(float(cfg.gait_cycle_s)),
-      "phase_offsets": json.dumps([float(x) for x in lay.phase_offset]),
-      "limbs": json.dumps(list(lay.limbs)),
-      "temporal_director": json.dumps(bool(cfg.temporal_director)),
-      "agent_id": json.dumps(bool(cfg.agent_id)),
-      "partition": cfg.partition,
-      "fall_height_m": repr(float(cfg.fall_height)),
-      "fall_tilt_rad": repr(float(cfg.fall_tilt)),
-      "inputs": json.dumps(list(INPUTS)),
-      "outputs": json.dumps(list(OUTPUTS)),
-      "units": json.dumps({
-          "q": "rad, absolute, joint_order", "dq": "rad/s, joint_order",
-          "last_action": "previous action output (unitless)",
-          "gait_phase": "cycles in [0, 1); += ctrl_dt/gait_cycle_s per step unless standing",
-          "euler": "rad, roll pitch yaw (ZYX) of the torso",
-          "ang_vel": "rad/s, torso frame",
-          "command": "[standing 0/1, vx m/s, vy m/s, yaw rate rad/s]",
-          "action": "unitless, controlled_joints order",
-          "q_target": "rad, absolute, controlled_joints order; PD at every physics step: "
+      "format":
+          "mash-policy/1",
+      "robot":
+          spec.name,
+      "joint_order":
+          json.dumps(joints),
+      "controlled_joints":
+          json.dumps([joints[i] for i in ctrl]),
+      "controlled_index":
+          json.dumps(ctrl),
+      "default_pose_rad":
+          json.dumps([float(x) for x in lay.default_pose]),
+      "kp":
+          json.dumps([float(x) for x in lay.kp]),
+      "kd":
+          json.dumps([float(x) for x in lay.kd]),
+      "torque_limit_nm":
+          json.dumps([float(x) for x in lay.torque_limit]),
+      "action_scale":
+          repr(float(cfg.action_scale)),
+      "action_clip":
+          repr(float(cfg.action_clip)),
+      "ctrl_dt_s":
+          repr(float(cfg.ctrl_dt)),
+      "control_rate_hz":
+          repr(1.0 / float(cfg.ctrl_dt)),
+      "gait_cycle_s":
+          repr(float(cfg.gait_cycle_s)),
+      "phase_offsets":
+          json.dumps([float(x) for x in lay.phase_offset]),
+      "limbs":
+          json.dumps(list(lay.limbs)),
+      "temporal_director":
+          json.dumps(bool(cfg.temporal_director)),
+      "agent_id":
+          json.dumps(bool(cfg.agent_id)),
+      "partition":
+          cfg.partition,
+      "fall_height_m":
+          repr(float(cfg.fall_height)),
+      "fall_tilt_rad":
+          repr(float(cfg.fall_tilt)),
+      "inputs":
+          json.dumps(list(INPUTS)),
+      "outputs":
+          json.dumps(list(OUTPUTS)),
+      "units":
+          json.dumps({
+              "q": "rad, absolute, joint_order", "dq": "rad/s, joint_order",
+              "last_action": "previous action output (unitless)",
+              "gait_phase": "cycles in [0, 1); += ctrl_dt/gait_cycle_s per step unless standing",
+              "euler": "rad, roll pitch yaw (ZYX) of the torso", "ang_vel": "rad/s, torso frame",
+              "command": "[standing 0/1, vx m/s, vy m/s, yaw rate rad/s]", "action":
+                  "unitless, controlled_joints order", "q_target":
+                      "rad, absolute, controlled_joints order; PD at every physics step: "
                       "tau = clip(kp (q_target - q) - kd dq, -torque_limit, torque_limit); "
-                      "joints not controlled hold default_pose"}),
+                      "joints not controlled hold default_pose"
+          }),
   }
   props.update({k: str(v) for k, v in parts.meta.items()})
   return props
@@ -285,8 +314,8 @@ def build_model(parts: PolicyParts) -> onnx.ModelProto:
   _targets(g, env, flat_parts, flat_index, lay.n_actions)
   graph = helper.make_graph(g.nodes, "mash_policy", _value_infos(INPUTS, lay),
                             _value_infos(OUTPUTS, lay), initializer=g.inits)
-  model = helper.make_model(graph, producer_name="mash-jax", opset_imports=[
-      helper.make_opsetid("", OPSET)])
+  model = helper.make_model(graph, producer_name="mash-jax",
+                            opset_imports=[helper.make_opsetid("", OPSET)])
   model.ir_version = IR_VERSION
   model.doc_string = (
       f"MASH policy ({parts.meta.get('algo', '?')}, {cfg.task}) for {env.spec.name}: "
@@ -303,35 +332,45 @@ def _feature_row(g: "_Graph", env, lay: "Layout") -> str:
   ang_vel | command | 0 | 1``, each limb's phase with its offset."""
   q_default = np.asarray(env.layout.default_pose, np.float32)
   q_rel = g.op("Sub", ["q", g.const(q_default, "q_default")], "q_rel")
-  angle = g.op("Mul", [g.op("Add", ["gait_phase", g.const(lay.phase_offset, "phase_offset")],
-                            "limb_phase"), g.const(np.float32(2 * np.pi), "two_pi")], "limb_angle")
+  angle = g.op("Mul", [
+      g.op("Add", ["gait_phase", g.const(lay.phase_offset, "phase_offset")], "limb_phase"),
+      g.const(np.float32(2 * np.pi), "two_pi")
+  ], "limb_angle")
   sin = g.op("Sin", [angle], "phase_sin")
   cos = g.op("Cos", [angle], "phase_cos")
   batch = g.op("Shape", ["q"], "batch", end=1)
   const_shape = g.op("Concat", [batch, g.const([2], "two", np.int64)], "const_shape", axis=0)
   const_cols = g.op("Expand", [g.const([[0.0, 1.0]], "zero_one"), const_shape], "const_cols")
-  return g.op("Concat", [q_rel, "dq", "last_action", sin, cos, "euler", "ang_vel", "command",
-                         const_cols], "features", axis=1)
+  return g.op("Concat",
+              [q_rel, "dq", "last_action", sin, cos, "euler", "ang_vel", "command", const_cols],
+              "features", axis=1)
 
 
 def _normalized(g: "_Graph", parts: PolicyParts, name: str, obs: str) -> str:
   """A group's observations through its running statistics, clipped as in training."""
   stats = parts.normalizer[name]
   mean = np.asarray(stats.mean, np.float32)
-  std = np.asarray(normalization.RunningStats(
-      jnp.asarray(stats.count), jnp.asarray(stats.mean), jnp.asarray(stats.m2)).std, np.float32)
-  obs = g.op("Div", [g.op("Sub", [obs, g.const(mean, f"{name}_obs_mean")], f"{name}_centred"),
-                     g.const(std, f"{name}_obs_std")], f"{name}_scaled")
-  return g.op("Clip", [obs, g.const(np.float32(-parts.obs_clip), "obs_clip_lo"),
-                       g.const(np.float32(parts.obs_clip), "obs_clip_hi")], f"{name}_normalized")
+  std = np.asarray(
+      normalization.RunningStats(jnp.asarray(stats.count), jnp.asarray(stats.mean),
+                                 jnp.asarray(stats.m2)).std, np.float32)
+  obs = g.op("Div", [
+      g.op("Sub", [obs, g.const(mean, f"{name}_obs_mean")], f"{name}_centred"),
+      g.const(std, f"{name}_obs_std")
+  ], f"{name}_scaled")
+  return g.op("Clip", [
+      obs,
+      g.const(np.float32(-parts.obs_clip), "obs_clip_lo"),
+      g.const(np.float32(parts.obs_clip), "obs_clip_hi")
+  ], f"{name}_normalized")
 
 
 def _group_actions(g: "_Graph", parts: PolicyParts, group, lay: "Layout", features: str) -> str:
   """One group's actions ``[N, n_agents * act_dim]``: every agent's observation gathered from the
   feature row, normalized, through the group's actor MLP (shared, or one per agent)."""
   name = group.name
-  obs = g.op("Gather", [features, g.const(lay.obs_index[name], f"{name}_obs_index", np.int64)],
-             f"{name}_obs", axis=1)  # [N, n_agents, obs_dim]
+  obs = g.op("Gather",
+             [features, g.const(lay.obs_index[name], f"{name}_obs_index", np.int64)], f"{name}_obs",
+             axis=1)  # [N, n_agents, obs_dim]
   if parts.normalizer is not None:
     obs = _normalized(g, parts, name, obs)
   layers = _dense_layers(parts.params["actors"][name])
@@ -342,8 +381,10 @@ def _group_actions(g: "_Graph", parts: PolicyParts, group, lay: "Layout", featur
   for k, (kernel, bias) in enumerate(layers):
     if per_agent:
       bias = bias[:, None, :]
-    x = g.op("Add", [g.op("MatMul", [x, g.const(kernel, f"{name}_W{k}")], f"{name}_mm{k}"),
-                     g.const(bias, f"{name}_b{k}")], f"{name}_dense{k}")
+    x = g.op("Add", [
+        g.op("MatMul", [x, g.const(kernel, f"{name}_W{k}")], f"{name}_mm{k}"),
+        g.const(bias, f"{name}_b{k}")
+    ], f"{name}_dense{k}")
     if k < len(layers) - 1:
       x = g.op("Elu", [x], f"{name}_elu{k}", alpha=1.0)
   if per_agent:
@@ -351,12 +392,13 @@ def _group_actions(g: "_Graph", parts: PolicyParts, group, lay: "Layout", featur
   return g.op("Reshape", [x, g.const([0, -1], "flat_shape", np.int64)], f"{name}_flat")
 
 
-def _targets(g: "_Graph", env, flat_parts: list[str], flat_index: list[int], n_actions: int) -> None:
+def _targets(g: "_Graph", env, flat_parts: list[str], flat_index: list[int],
+             n_actions: int) -> None:
   """The outputs: the groups' actions in flat order (``action``) and the PD targets they set
   (``q_target = default + action_scale * clip(action)``)."""
   cfg = env.config
-  stacked = (flat_parts[0] if len(flat_parts) == 1
-             else g.op("Concat", flat_parts, "stacked_actions", axis=1))
+  stacked = (flat_parts[0]
+             if len(flat_parts) == 1 else g.op("Concat", flat_parts, "stacked_actions", axis=1))
   if sorted(flat_index) != list(range(n_actions)):
     raise ExportError(f"agent action indices {flat_index} do not cover the {n_actions} actions "
                       "once")
@@ -366,8 +408,11 @@ def _targets(g: "_Graph", env, flat_parts: list[str], flat_index: list[int], n_a
   else:
     g.op("Gather", [stacked, g.const(order, "action_order", np.int64)], "action", out="action",
          axis=1)
-  clipped = g.op("Clip", ["action", g.const(np.float32(-cfg.action_clip), "action_clip_lo"),
-                          g.const(np.float32(cfg.action_clip), "action_clip_hi")], "action_clipped")
+  clipped = g.op("Clip", [
+      "action",
+      g.const(np.float32(-cfg.action_clip), "action_clip_lo"),
+      g.const(np.float32(cfg.action_clip), "action_clip_hi")
+  ], "action_clipped")
   scaled = g.op("Mul", [g.const(np.float32(cfg.action_scale), "action_scale"), clipped], "scaled")
   q_default = np.asarray(env.layout.default_pose, np.float32)
   g.op("Add", [g.const(q_default[env.layout.controlled], "default_ctrl"), scaled], "q_target",
@@ -388,8 +433,10 @@ def _value_infos(names: tuple[str, ...], lay: "Layout") -> list:
       "action": (A, f"[N, {A}] policy mean, metadata controlled_joints order"),
       "q_target": (A, f"[N, {A}] PD targets (rad), metadata controlled_joints order"),
   }
-  return [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["N", docs[n][0]],
-                                        doc_string=docs[n][1]) for n in names]
+  return [
+      helper.make_tensor_value_info(n, TensorProto.FLOAT, ["N", docs[n][0]], doc_string=docs[n][1])
+      for n in names
+  ]
 
 
 def export_policy(policy, path: str | os.PathLike) -> Path:
@@ -447,15 +494,26 @@ def random_inputs(env, n: int, seed: int = 0) -> dict[str, np.ndarray]:
   q_default = np.asarray(env.layout.default_pose, np.float32)  # float32, as the env holds it
   standing = (rng.uniform(size=n) < 0.2).astype(np.float32)
   return {
-      "q": f32(q_default[None] + rng.normal(0.0, 0.3, (n, J))),
-      "dq": f32(rng.normal(0.0, 2.0, (n, J))),
-      "last_action": f32(rng.normal(0.0, 1.0, (n, A))),
-      "gait_phase": f32(rng.uniform(0.0, 1.0, (n, 1))),
-      "euler": f32(rng.uniform(-0.3, 0.3, (n, 3))),
-      "ang_vel": f32(rng.normal(0.0, 0.7, (n, 3))),
-      "command": f32(np.stack([standing, rng.uniform(-0.3, 0.8, n) * (1 - standing),
-                               rng.uniform(-0.2, 0.2, n) * (1 - standing),
-                               rng.uniform(-0.5, 0.5, n) * (1 - standing)], axis=1)),
+      "q":
+          f32(q_default[None] + rng.normal(0.0, 0.3, (n, J))),
+      "dq":
+          f32(rng.normal(0.0, 2.0, (n, J))),
+      "last_action":
+          f32(rng.normal(0.0, 1.0, (n, A))),
+      "gait_phase":
+          f32(rng.uniform(0.0, 1.0, (n, 1))),
+      "euler":
+          f32(rng.uniform(-0.3, 0.3, (n, 3))),
+      "ang_vel":
+          f32(rng.normal(0.0, 0.7, (n, 3))),
+      "command":
+          f32(
+              np.stack([
+                  standing,
+                  rng.uniform(-0.3, 0.8, n) * (1 - standing),
+                  rng.uniform(-0.2, 0.2, n) * (1 - standing),
+                  rng.uniform(-0.5, 0.5, n) * (1 - standing)
+              ], axis=1)),
   }
 
 
@@ -468,15 +526,15 @@ def reference_fn(parts: PolicyParts):
 
   def one(q, dq, last_action, gait_phase, euler, ang_vel, command):
     sensors = dict(q=q, dq=dq, euler=euler, ang_vel=ang_vel, lin_vel=jnp.zeros(3))
-    info = dict(command=command, phase=gait_phase[0], last_action=last_action,
-                push=jnp.zeros(5), dr=dr)
+    info = dict(command=command, phase=gait_phase[0], last_action=last_action, push=jnp.zeros(5),
+                dr=dr)
     obs = env.observe(sensors, info, jnp.ones(2))
     action = policy(parts.params, parts.normalizer, obs)
     return action, env.joint_targets(action)[env.layout.controlled]
 
   batched = jax.jit(jax.vmap(one))
-  return lambda inputs: tuple(np.asarray(x) for x in batched(*(jnp.asarray(inputs[k])
-                                                               for k in INPUTS)))
+  return lambda inputs: tuple(
+      np.asarray(x) for x in batched(*(jnp.asarray(inputs[k]) for k in INPUTS)))
 
 
 def onnx_session(path: str | os.PathLike):
@@ -501,10 +559,12 @@ def verify(path: str | os.PathLike, policy, n: int = 256, input_seed: int = 0) -
   """
   parts = policy if isinstance(policy, PolicyParts) else policy_parts(policy)
   inputs = random_inputs(parts.env, n, input_seed)
-  precision = (contextlib.nullcontext() if jax.default_backend() == "cpu"
-               else jax.default_matmul_precision("highest"))
+  precision = (contextlib.nullcontext()
+               if jax.default_backend() == "cpu" else jax.default_matmul_precision("highest"))
   with precision:
     ref_action, ref_target = reference_fn(parts)(inputs)
   action, target = onnx_session(path).run(list(OUTPUTS), inputs)
-  return {"action": float(np.max(np.abs(action - ref_action))),
-          "q_target": float(np.max(np.abs(target - ref_target))), "n": n}
+  return {
+      "action": float(np.max(np.abs(action - ref_action))),
+      "q_target": float(np.max(np.abs(target - ref_target))), "n": n
+  }

@@ -37,10 +37,8 @@ from typing import Any, Callable, Iterator, Mapping, NamedTuple
 
 import numpy as np
 
-from mash.analysis import reports
-from mash.analysis import robustness
-from mash.deploy import export
-from mash.deploy import sim2sim
+from mash.analysis import reports, robustness
+from mash.deploy import export, sim2sim
 from mash.sim import robots
 
 PHASE_STEP = 0.37  # gait phase between consecutive episodes (cycles): spreads them over the cycle
@@ -102,8 +100,8 @@ class Runner:
     self.robot.perturb(float(p.friction), float(p.mass), np.asarray(p.strength, np.float64))
     controller = sim2sim.Controller(self.session, self.dep, delay=int(p.delay))
     noise = np.asarray(p.noise, np.float64)
-    sense = (sensor_noise(noise, np.random.default_rng([self.cfg.seed, e]))
-             if np.any(noise > 0) else None)
+    sense = (sensor_noise(noise, np.random.default_rng([self.cfg.seed, e])) if np.any(
+        noise > 0) else None)
     kick = (self.kick_step, np.asarray(p.kick, np.float64)) if np.any(p.kick != 0) else None
     traj = sim2sim.run_episode(self.robot, controller, self.command, self.steps, start_phase(e),
                                self.hips, sense=sense, kick=kick)
@@ -168,8 +166,9 @@ def run(onnx_path: str | os.PathLike, spec: robots.RobotSpec,
   conds = robustness.conditions(cfg)
   eps = robustness.episodes(conds, cfg, robustness.left_leg_mask(spec), dep.ctrl_dt)
   n = cfg.episodes
-  jobs = [(i % n, robustness.Episodes(*(field[i] for field in eps)))
-          for i in range(len(eps.friction))]
+  jobs = [
+      (i % n, robustness.Episodes(*(field[i] for field in eps))) for i in range(len(eps.friction))
+  ]
   workers = max(1, min(default_workers() if workers is None else workers, len(jobs)))
   alive, speed = [], []
   t0 = t_first = time.perf_counter()
@@ -180,8 +179,7 @@ def run(onnx_path: str | os.PathLike, spec: robots.RobotSpec,
     t_first = now if i == 0 else t_first  # the processes' start-up is behind us from here on
     if (i + 1) % n == 0 and progress is not None:
       k = (i + 1) // n
-      row = robustness.summarize([conds[k - 1]], np.stack(alive[-n:]), np.stack(speed[-n:]),
-                                 cfg)[0]
+      row = robustness.summarize([conds[k - 1]], np.stack(alive[-n:]), np.stack(speed[-n:]), cfg)[0]
       per_episode = (now - t_first) / i if i > 0 else now - t0
       to_go = per_episode * (len(jobs) - i - 1)
       progress(f"condition {k}/{len(conds)} {row['name']}: survival "
@@ -191,13 +189,14 @@ def run(onnx_path: str | os.PathLike, spec: robots.RobotSpec,
 
 
 def result(onnx_path: str | os.PathLike, physics: sim2sim.Sim2SimConfig, ctrl_dt: float,
-           cfg: robustness.BatteryConfig, rows: list[dict[str, Any]],
-           **extra: Any) -> dict[str, Any]:
+           cfg: robustness.BatteryConfig, rows: list[dict[str,
+                                                          Any]], **extra: Any) -> dict[str, Any]:
   """``robustness.json``: the engine, its physics, the policy, the battery and its rows (the MJX
   battery's format, ``survival_by_direction`` kept for kicks), then ``extra`` entries."""
-  return {"engine": "mujoco", "physics": sim2sim.physics_record(physics, ctrl_dt),
-          "onnx": str(onnx_path), "battery": dataclasses.asdict(cfg), "conditions": rows,
-          **extra}
+  return {
+      "engine": "mujoco", "physics": sim2sim.physics_record(physics, ctrl_dt),
+      "onnx": str(onnx_path), "battery": dataclasses.asdict(cfg), "conditions": rows, **extra
+  }
 
 
 def write(out_dir: str | os.PathLike, res: Mapping[str, Any], title: str) -> Path:

@@ -26,13 +26,10 @@ import jax
 import numpy as np
 
 from mash import cli
-from mash.analysis import evaluation
-from mash.analysis import reports
+from mash.analysis import evaluation, reports
 from mash.analysis import robustness as battery
-from mash.deploy import export
-from mash.deploy import native_battery
+from mash.deploy import export, native_battery, sim2sim
 from mash.deploy import policy as policy_lib
-from mash.deploy import sim2sim
 from mash.deploy import video as video_lib
 from mash.sim import env as env_lib
 from mash.sim import robots
@@ -51,15 +48,18 @@ TABLE_ROWS = (  # (key, label, unit)
     ("C_limb", "C_limb", "rad"),
 )
 # The flag that sets each Sim2SimConfig field, to name it in an error.
-SIM2SIM_FLAGS = {"command_vx": "--command-vx", "num_episodes": "--episodes",
-                 "episode_s": "--seconds", "sim_dt": "--sim-dt", "iterations": "--iterations",
-                 "seed": "--seed"}
+SIM2SIM_FLAGS = {
+    "command_vx": "--command-vx", "num_episodes": "--episodes", "episode_s": "--seconds",
+    "sim_dt": "--sim-dt", "iterations": "--iterations", "seed": "--seed"
+}
 # The flag that sets each BatteryConfig field (--robustness), to name it in an error.
 BATTERY_FLAGS = {"episodes": "--episodes", "episode_s": "--seconds", "seed": "--battery-seed"}
 # Flags the battery has no use for: its command, conditions and engine are its own.
-NOT_WITH_ROBUSTNESS = {"video": "--video", "video_seconds": "--video-seconds",
-                       "viewer": "--viewer", "no_mjx": "--no-mjx", "command_vx": "--command-vx",
-                       "mjx_episodes": "--mjx-episodes", "mjx_dr": "--mjx-dr"}
+NOT_WITH_ROBUSTNESS = {
+    "video": "--video", "video_seconds": "--video-seconds", "viewer": "--viewer",
+    "no_mjx": "--no-mjx", "command_vx": "--command-vx", "mjx_episodes": "--mjx-episodes",
+    "mjx_dr": "--mjx-dr"
+}
 MJX_EPISODES = 4  # --mjx-episodes' default
 
 
@@ -119,8 +119,10 @@ def check_options(o: Options) -> None:
     raise cli.UserError("--video-seconds must be a finite number of seconds > 0, got "
                         f"{o.video_seconds}")
   if o.robustness:
-    given = [flag for field, flag in NOT_WITH_ROBUSTNESS.items()
-             if getattr(o, field) is not None and getattr(o, field) is not False]
+    given = [
+        flag for field, flag in NOT_WITH_ROBUSTNESS.items()
+        if getattr(o, field) is not None and getattr(o, field) is not False
+    ]
     if given:
       raise cli.UserError(f"--robustness runs the battery's own command and conditions in MuJoCo "
                           f"C alone; drop {', '.join(given)}")
@@ -129,8 +131,8 @@ def check_options(o: Options) -> None:
     raise cli.UserError("--workers and --battery-seed go with --robustness")
   if o.workers is not None and o.workers < 1:
     raise cli.UserError(f"--workers must be >= 1, got {o.workers}")
-  if ((o.episodes is not None and o.episodes < 1) or (o.seconds is not None and o.seconds <= 0)
-      or (o.mjx_episodes is not None and o.mjx_episodes < 1)):
+  if ((o.episodes is not None and o.episodes < 1) or (o.seconds is not None and o.seconds <= 0) or
+      (o.mjx_episodes is not None and o.mjx_episodes < 1)):
     raise cli.UserError("--episodes and --mjx-episodes must be >= 1 and --seconds > 0")
   if o.iterations < 1:
     raise cli.UserError(f"--iterations must be >= 1, got {o.iterations}")
@@ -149,8 +151,8 @@ def sim2sim_config(o: Options) -> sim2sim.Sim2SimConfig:
     cli.UserError: one line naming the flag, its value and what was expected.
   """
   given = {"command_vx": o.command_vx, "num_episodes": o.episodes, "episode_s": o.seconds}
-  cfg = sim2sim.Sim2SimConfig(**{k: v for k, v in given.items() if v is not None},
-                              sim_dt=o.sim_dt, iterations=o.iterations, seed=o.seed)
+  cfg = sim2sim.Sim2SimConfig(**{k: v for k, v in given.items() if v is not None}, sim_dt=o.sim_dt,
+                              iterations=o.iterations, seed=o.seed)
   try:
     sim2sim.check_config(cfg, SIM2SIM_FLAGS)
     evaluation.check_config(evaluation.EvalConfig(num_episodes=mjx_episodes(o)),
@@ -197,8 +199,7 @@ def hip_reference(env: env_lib.MashEnv,
 
   def reference(phase: np.ndarray, standing: np.ndarray) -> np.ndarray:
     standing = np.asarray(standing, np.float32)
-    command = np.stack([standing, (1 - standing) * command_vx, 0 * standing, 0 * standing],
-                       axis=-1)
+    command = np.stack([standing, (1 - standing) * command_vx, 0 * standing, 0 * standing], axis=-1)
     q_ref, _ = gait(np.asarray(phase, np.float32), standing, command)
     return q_default[hips] + np.asarray(q_ref)[:, hips]
 
@@ -214,7 +215,7 @@ def summarize(traj: Mapping[str, np.ndarray], command_vx: float) -> dict[str, An
   err = (traj["forward_velocity"] - command_vx) * alive
   m.update(
       survival_s=float(alive.sum(axis=1).mean() * dt),
-      velocity_rmse=float(np.sqrt((err ** 2).sum() / max(alive.sum(), 1.0))),
+      velocity_rmse=float(np.sqrt((err**2).sum() / max(alive.sum(), 1.0))),
       velocity_error=float(m["forward_speed"] - command_vx),
   )
   return m
@@ -228,8 +229,7 @@ def mjx_row(metrics: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float, dr: bool,
-                say: Callable[[str], None],
-                robot: str | None = None) -> tuple[dict | None, str]:
+                say: Callable[[str], None], robot: str | None = None) -> tuple[dict | None, str]:
   """The MJX side of the table: ``DIR/eval/metrics.json`` or a short ``evaluate_run`` (with domain
   randomization only when ``dr``: off, it runs the same nominal robot as the MuJoCo C side).
 
@@ -257,10 +257,9 @@ def mjx_metrics(run_dir: Path, episodes: int, seconds: float, command_vx: float,
                             "not written to eval/)")
 
 
-def build_report(o: Options, onnx_path: Path, cfg: sim2sim.Sim2SimConfig,
-                 result: sim2sim.SimResult, wall: float, mujoco_row: dict[str, Any],
-                 mjx: tuple[dict | None, str], video: str | None,
-                 video_skipped: str | None) -> dict[str, Any]:
+def build_report(o: Options, onnx_path: Path, cfg: sim2sim.Sim2SimConfig, result: sim2sim.SimResult,
+                 wall: float, mujoco_row: dict[str, Any], mjx: tuple[dict | None, str],
+                 video: str | None, video_skipped: str | None) -> dict[str, Any]:
   """``report.json``: the settings, the MuJoCo C metrics (``mujoco_row``: :func:`summarize`)
   beside the MJX ones (``mjx``: :func:`mjx_metrics`), each episode's survival and speed (from
   ``result``, which took ``wall`` seconds), and what became of the video."""
@@ -268,19 +267,26 @@ def build_report(o: Options, onnx_path: Path, cfg: sim2sim.Sim2SimConfig,
   alive = traj["alive"]  # [E, T]
   meta = export.read_metadata(onnx_path)
   return {
-      "run": str(Path(o.run)), "onnx": str(onnx_path),
-      "checkpoint_iteration": meta.get("checkpoint_iteration"), "seed": o.seed,
-      "command_vx": cfg.command_vx, "episodes": cfg.num_episodes, "episode_s": cfg.episode_s,
+      "run": str(Path(o.run)),
+      "onnx": str(onnx_path),
+      "checkpoint_iteration": meta.get("checkpoint_iteration"),
+      "seed": o.seed,
+      "command_vx": cfg.command_vx,
+      "episodes": cfg.num_episodes,
+      "episode_s": cfg.episode_s,
       "physics": sim2sim.physics_record(cfg, float(traj["dt"])),
       "mujoco": mujoco_row,
-      "mjx": mjx[0], "mjx_source": mjx[1],
-      "per_episode": [{"survival_s": float(a.sum() * traj["dt"]), "fell": bool(a.min() == 0),
-                       "forward_speed": float((v * a).sum() / max(a.sum(), 1.0)),
-                       "wall_s": float(w)}
-                      for a, v, w in zip(alive, traj["forward_velocity"], traj["wall_s"])],
+      "mjx": mjx[0],
+      "mjx_source": mjx[1],
+      "per_episode": [{
+          "survival_s": float(a.sum() * traj["dt"]), "fell": bool(a.min() == 0),
+          "forward_speed": float((v * a).sum() / max(a.sum(), 1.0)), "wall_s": float(w)
+      } for a, v, w in zip(alive, traj["forward_velocity"], traj["wall_s"])],
       "wall_s": wall,
       "realtime_factor": float(alive.sum() * traj["dt"] / max(wall, 1e-9)),
-      "video": video, "video_frames": result.video_frames, "video_skipped": video_skipped,
+      "video": video,
+      "video_frames": result.video_frames,
+      "video_skipped": video_skipped,
   }
 
 
@@ -315,8 +321,10 @@ def markdown(report: Mapping[str, Any]) -> str:
   for key, label, unit in TABLE_ROWS:
     name = f"{label} ({unit})" if unit else label
     lines.append(f"| {name} | {_fmt(mj.get(key))} | {_fmt(mjx.get(key) if mjx else None)} |")
-  lines += ["", "S_action, S_torso, C_limb are computed on the episodes that did not fall "
-            "(all episodes when every one fell). Lower is better for all but forward speed.", ""]
+  lines += [
+      "", "S_action, S_torso, C_limb are computed on the episodes that did not fall "
+      "(all episodes when every one fell). Lower is better for all but forward speed.", ""
+  ]
   return "\n".join(lines)
 
 
@@ -380,8 +388,8 @@ def run(o: Options, say: Callable[[str], None] = print) -> Path | None:
   report = build_report(o, onnx_path, cfg, result, wall, mujoco_row, mjx, video, video_skipped)
   out = write_report(run_dir / "sim2sim", report, result.traj)
   say(markdown(report))
-  say(f"wrote {out}/report.json, report.md, trajectories.npz"
-      + (f"; video {video}" if video else ""))
+  say(f"wrote {out}/report.json, report.md, trajectories.npz" +
+      (f"; video {video}" if video else ""))
   return out
 
 
@@ -416,10 +424,11 @@ def robustness(o: Options, say: Callable[[str], None] = print) -> Path:
   wall = time.perf_counter() - t0
   ctrl_dt = sim2sim.Deployment.from_metadata(meta).ctrl_dt
   res = native_battery.result(onnx_path, physics, ctrl_dt, cfg, rows,
-                              checkpoint_iteration=meta.get("checkpoint_iteration"),
-                              seed=o.seed, workers=workers, wall_s=wall)
-  native_battery.write(out, res, f"{config.task} {config.algo}, MuJoCo C, iteration "
-                       f"{meta.get('checkpoint_iteration')}, {cfg.episodes} episodes a condition")
+                              checkpoint_iteration=meta.get("checkpoint_iteration"), seed=o.seed,
+                              workers=workers, wall_s=wall)
+  native_battery.write(
+      out, res, f"{config.task} {config.algo}, MuJoCo C, iteration "
+      f"{meta.get('checkpoint_iteration')}, {cfg.episodes} episodes a condition")
   reports.print_robustness(res)
   say(f"wrote {out}/robustness.json, robustness.png ({wall:.0f} s)")
   return out

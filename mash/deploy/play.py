@@ -21,9 +21,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from mash import cli
-from mash.deploy import export
+from mash.deploy import export, sim2sim
 from mash.deploy import policy as policy_lib
-from mash.deploy import sim2sim
 from mash.deploy import video as video_lib
 from mash.sim import robots
 
@@ -211,10 +210,10 @@ def record(o: Options, onnx_path: Path, spec: robots.RobotSpec, meta: Mapping[st
   steps = max(1, int(round(o.seconds / dep.ctrl_dt)))
   gif = Path(o.video).suffix.lower() == ".gif"  # small and slow: for a README or a slide
   fps, (width, height) = (12.5, (400, 300)) if gif else (25.0, (640, 480))
-  say(f"playing {onnx_path} for {o.seconds:g} s at "
-      + ("the standing command" if o.stand else
-         f"vx {vx:+.2f} m/s, vy {vy:+.2f} m/s, yaw rate {yaw:+.2f} rad/s")
-      + f" (rendering {int(o.seconds * fps)} frames, about {0.12 * o.seconds * fps:.0f} s "
+  say(f"playing {onnx_path} for {o.seconds:g} s at " +
+      ("the standing command" if o.
+       stand else f"vx {vx:+.2f} m/s, vy {vy:+.2f} m/s, yaw rate {yaw:+.2f} rad/s") +
+      f" (rendering {int(o.seconds * fps)} frames, about {0.12 * o.seconds * fps:.0f} s "
       "on a CPU)")
   writer = video_lib.VideoWriter(robot.model, o.video, fps, robot.root, width, height, backend)
   t0 = time.perf_counter()

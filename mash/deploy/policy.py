@@ -40,13 +40,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mash.runs import checkpoint
-from mash.sim import env as env_lib
-from mash.runs import experiment
-from mash.rl import networks
-from mash.rl import normalization
-from mash.sim import robots
 from mash.errors import InputError
+from mash.rl import networks, normalization
+from mash.runs import checkpoint, experiment
+from mash.sim import env as env_lib
+from mash.sim import robots
 
 FORMAT = "mash-policy-folder/1"
 CONFIG = "config.json"
@@ -181,9 +179,9 @@ def _load_run(path: Path, cfg: experiment.ExperimentConfig, iteration: int | Non
   # A multi-seed run stores every leaf with a leading seed axis.
   pick = (lambda tree, s: tree) if cfg.seeds == 1 else (
       lambda tree, s: jax.tree.map(lambda x: x[s], tree))
-  return tuple(Policy(cfg, {"actors": pick(actors, s)},
-                      None if normalizer is None else pick(normalizer, s),
-                      int(restored.step), s, str(path)) for s in seeds)
+  return tuple(
+      Policy(cfg, {"actors": pick(actors, s)}, None if normalizer is None else pick(normalizer, s),
+             int(restored.step), s, str(path)) for s in seeds)
 
 
 def folder_info(path: str | os.PathLike) -> dict[str, Any]:
@@ -208,8 +206,9 @@ def _load_folder(path: Path, cfg: experiment.ExperimentConfig) -> Policy:
     actors = tree["params"]["actors"]
     normalizer = None
     if "normalizer" in tree:
-      normalizer = {name: normalization.RunningStats(**stats)
-                    for name, stats in tree["normalizer"].items()}
+      normalizer = {
+          name: normalization.RunningStats(**stats) for name, stats in tree["normalizer"].items()
+      }
     if set(tree) - {"params", "normalizer"} or set(tree["params"]) != {"actors"}:
       raise ValueError(f"unexpected arrays {sorted(set(tree) | set(tree['params']))}")
   except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as e:
@@ -242,15 +241,19 @@ def save(policy: Policy, folder: str | os.PathLike) -> Path:
   (folder / CONFIG).write_text(experiment.to_json(policy.config))
   tree = {"params": policy.params}
   if policy.normalizer is not None:
-    tree["normalizer"] = {name: {"count": s.count, "mean": s.mean, "m2": s.m2}
-                          for name, s in policy.normalizer.items()}
+    tree["normalizer"] = {
+        name: {"count": s.count, "mean": s.mean, "m2": s.m2}
+        for name, s in policy.normalizer.items()
+    }
   flat = flax.traverse_util.flatten_dict(jax.device_get(tree), sep="/")
   with open(folder / ARRAYS, "wb") as f:
     np.savez(f, **{k: np.asarray(v) for k, v in flat.items()})
   (folder / CARD).write_text(card(policy))
   (folder / ONNX).unlink(missing_ok=True)
-  info = {"format": FORMAT, "iteration": int(policy.iteration), "seed": int(policy.seed),
-          "saved_from": policy.source, "task": policy.config.task, "algo": policy.config.algo}
+  info = {
+      "format": FORMAT, "iteration": int(policy.iteration), "seed": int(policy.seed),
+      "saved_from": policy.source, "task": policy.config.task, "algo": policy.config.algo
+  }
   (folder / INFO).write_text(json.dumps(info, indent=2) + "\n")
   return folder
 
@@ -261,22 +264,18 @@ def card(policy: Policy) -> str:
   hidden = "-".join(str(w) for w in cfg.train.actor_hidden)
   groups = ", ".join(sorted(policy.params["actors"]))
   return "\n".join([
-      f"# MASH policy: {cfg.task}, {cfg.algo}",
-      "",
+      f"# MASH policy: {cfg.task}, {cfg.algo}", "",
       f"- task `{cfg.task}`, algorithm `{cfg.algo}`, preset `{cfg.preset}`, ablation "
       f"`{cfg.ablation}`; robot `{cfg.env.robot}`, `{cfg.env.partition}` partition",
       f"- checkpoint iteration {policy.iteration}, seed {policy.seed} of its run; loaded from "
-      f"`{policy.source}`",
-      f"- actors: {groups} (MLP {hidden}, ELU), deterministic mean action at "
+      f"`{policy.source}`", f"- actors: {groups} (MLP {hidden}, ELU), deterministic mean action at "
       f"{1.0 / cfg.env.ctrl_dt:g} Hz; observation normalization "
-      f"{'on' if policy.normalizer is not None else 'off'}",
-      "",
+      f"{'on' if policy.normalizer is not None else 'off'}", "",
       f"Files: `{CONFIG}` (the run's config), `{ARRAYS}` (actor parameters and observation "
-      f"statistics, {FORMAT}), `{INFO}`, this card, and `{ONNX}` when exported.",
-      "",
+      f"statistics, {FORMAT}), `{INFO}`, this card, and `{ONNX}` when exported.", "",
       "Use: `mash.deploy.policy.load(FOLDER)`, or `python -m experiments.evaluate --run FOLDER`, "
-      "`experiments.export` and `experiments.sim2sim` likewise (`docs/deploy.md`).",
-      ""])
+      "`experiments.export` and `experiments.sim2sim` likewise (`docs/deploy.md`).", ""
+  ])
 
 
 def actor_networks(policy: Policy, env: env_lib.MashEnv) -> networks.Networks:
@@ -284,8 +283,9 @@ def actor_networks(policy: Policy, env: env_lib.MashEnv) -> networks.Networks:
   RunError when the policy's actor parameters do not fit them."""
   nets = networks.make_networks(env.agent_groups, env.critic_obs_size, policy.config.train)
   expected = jax.eval_shape(nets.init, jax.random.PRNGKey(0))["actors"]
-  shapes = lambda tree: {k: tuple(np.shape(v)) for k, v in
-                         flax.traverse_util.flatten_dict(tree, sep="/").items()}
+  shapes = lambda tree: {
+      k: tuple(np.shape(v)) for k, v in flax.traverse_util.flatten_dict(tree, sep="/").items()
+  }
   want, got = shapes(expected), shapes(policy.params["actors"])
   if want != got:
     key = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))[0]
@@ -294,8 +294,9 @@ def actor_networks(policy: Policy, env: env_lib.MashEnv) -> networks.Networks:
   return nets
 
 
-def make_inference_fn(policy: Policy, env: env_lib.MashEnv | None = None
-                      ) -> Callable[[Mapping[str, jax.Array]], jax.Array]:
+def make_inference_fn(
+    policy: Policy,
+    env: env_lib.MashEnv | None = None) -> Callable[[Mapping[str, jax.Array]], jax.Array]:
   """The deterministic policy: ``obs {group: [..., n_agents, obs_dim]} -> [..., action_size]``
   flat mean action (normalized observations when the run normalizes them).
 

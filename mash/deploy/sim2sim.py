@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections import deque
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Mapping, NamedTuple
 
@@ -31,9 +31,8 @@ from mash.checks import MAX_INT32, Bound, check_bounds
 from mash.deploy import export
 from mash.deploy import policy as policy_lib
 from mash.deploy.video import VideoWriter
-from mash.sim import geometry
+from mash.sim import geometry, robots
 from mash.sim import model as model_lib
-from mash.sim import robots
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,17 +105,21 @@ def physics(cfg: Sim2SimConfig) -> model_lib.PhysicsConfig:
 def physics_record(cfg: Sim2SimConfig, ctrl_dt: float) -> dict[str, Any]:
   """The physics a report names (its ``physics``): the engine and its version, the time steps
   (s), the solver and the collision set; never domain randomization."""
-  return {"engine": "mujoco C " + mujoco.__version__, "sim_dt": cfg.sim_dt,
-          "iterations": cfg.iterations, "ls_iterations": cfg.ls_iterations,
-          "integrator": cfg.integrator, "full_collision": cfg.full_collision,
-          "ctrl_dt": float(ctrl_dt), "domain_randomization": False}
+  return {
+      "engine": "mujoco C " + mujoco.__version__, "sim_dt": cfg.sim_dt, "iterations":
+          cfg.iterations, "ls_iterations": cfg.ls_iterations, "integrator": cfg.integrator,
+      "full_collision": cfg.full_collision, "ctrl_dt": float(ctrl_dt), "domain_randomization": False
+  }
 
 
 def latest_step(run_dir: Path) -> int | None:
   """The newest complete checkpoint step of a run, from its directory names (None for a policy
   folder)."""
-  steps = [int(p.name) for p in (run_dir / "checkpoints").glob("*")
-           if p.name.isdigit() and not any(p.glob("*.orbax-checkpoint-tmp*"))]
+  steps = [
+      int(p.name)
+      for p in (run_dir / "checkpoints").glob("*")
+      if p.name.isdigit() and not any(p.glob("*.orbax-checkpoint-tmp*"))
+  ]
   return max(steps) if steps else None
 
 
@@ -184,8 +187,10 @@ class Deployment(NamedTuple):
 
   @classmethod
   def from_metadata(cls, meta: Mapping[str, Any]) -> "Deployment":
-    missing = [k for k in ("joint_order", "controlled_index", "default_pose_rad", "kp", "kd",
-                           "torque_limit_nm", "ctrl_dt_s", "gait_cycle_s") if k not in meta]
+    missing = [
+        k for k in ("joint_order", "controlled_index", "default_pose_rad", "kp", "kd",
+                    "torque_limit_nm", "ctrl_dt_s", "gait_cycle_s") if k not in meta
+    ]
     if missing:
       raise export.ExportError(f"the ONNX file has no metadata '{missing[0]}': not a MASH policy "
                                "export (python -m experiments.export)")
@@ -223,12 +228,13 @@ class NativeRobot:
     self.dadr = np.array([m.jnt_dofadr[i] for i in ids])
     self.act = np.array([m.actuator(j).id for j in dep.joints])
     n_sole = len(spec.sole_points[0])
-    self.soles = np.array([[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)]
-                           for side in ("left", "right")])
+    self.soles = np.array(
+        [[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)] for side in ("left", "right")])
     self.root = m.body(spec.root_body).id
     self.home = m.key("home").id
-    self.floor_pairs = np.array([m.pair(f"{side}_sole_{k}_floor").id
-                                 for side in ("left", "right") for k in range(n_sole)])
+    self.floor_pairs = np.array([
+        m.pair(f"{side}_sole_{k}_floor").id for side in ("left", "right") for k in range(n_sole)
+    ])
     self.floor = m.geom("floor").id
     self._nominal = (m.pair_friction[self.floor_pairs].copy(), m.geom_friction[self.floor].copy(),
                      int(m.geom_priority[self.floor]), float(m.body_mass[self.root]),
@@ -293,8 +299,9 @@ class NativeRobot:
   def fallen(self, s: Mapping[str, Any]) -> bool:
     """The env's fall condition: torso too low, too tilted, or the state not finite."""
     finite = np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel))
-    return bool(s["base_height"] < self.dep.fall_height or abs(s["euler"][0]) > self.dep.fall_tilt
-                or abs(s["euler"][1]) > self.dep.fall_tilt or not finite)
+    return bool(s["base_height"] < self.dep.fall_height or
+                abs(s["euler"][0]) > self.dep.fall_tilt or
+                abs(s["euler"][1]) > self.dep.fall_tilt or not finite)
 
 
 class Controller:
@@ -314,16 +321,18 @@ class Controller:
   def reset(self, phase: float) -> None:
     self.phase = float(phase)
     self.last_action[:] = 0.0
-    self.queue = deque((self.last_action.copy(), self.dep.default.copy())
-                       for _ in range(self.delay))
+    self.queue = deque(
+        (self.last_action.copy(), self.dep.default.copy()) for _ in range(self.delay))
 
   def act(self, s: Mapping[str, Any], command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Policy on the current readings; returns the (action [A], full PD target [J]) to apply now
     and advances the gait clock (frozen while ``command[0]``, the standing flag, is set)."""
     row = lambda x: np.asarray(x, np.float32).reshape(1, -1)
-    inputs = {"q": row(s["q"]), "dq": row(s["dq"]), "last_action": row(self.last_action),
-              "gait_phase": row([self.phase]), "euler": row(s["euler"]),
-              "ang_vel": row(s["ang_vel"]), "command": row(command)}
+    inputs = {
+        "q": row(s["q"]), "dq": row(s["dq"]), "last_action": row(self.last_action),
+        "gait_phase": row([self.phase]), "euler": row(s["euler"]), "ang_vel": row(s["ang_vel"]),
+        "command": row(command)
+    }
     action, q_target = self.session.run(list(export.OUTPUTS), inputs)
     action = action[0]
     target = self.dep.default.copy()
@@ -338,8 +347,8 @@ class Controller:
 
 
 def run_episode(robot: NativeRobot, controller: Controller, command: np.ndarray, steps: int,
-                phase: float, hips: Any, video: VideoWriter | None = None,
-                frame_every: int = 1, video_steps: int | None = None,
+                phase: float, hips: Any, video: VideoWriter | None = None, frame_every: int = 1,
+                video_steps: int | None = None,
                 sense: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
                 kick: tuple[int, np.ndarray] | None = None) -> dict[str, np.ndarray]:
   """One episode of ``steps`` control steps from the home pose at gait ``phase``.
@@ -460,11 +469,11 @@ def simulate(onnx_path: str | os.PathLike, spec: robots.RobotSpec, cfg: Sim2SimC
       fell = alive.min() == 0
       vx = float((traj["forward_velocity"] * alive).sum() / max(alive.sum(), 1.0))
       sim_s = alive.sum() * dep.ctrl_dt
-      progress(f"episode {e + 1}/{cfg.num_episodes}: "
-               + (f"fell at {t_alive:.2f} s" if fell else f"survived {t_alive:.1f} s")
-               + f", mean vx {vx:+.3f} m/s (command {cfg.command_vx:g}), "
-               f"{walls[-1]:.1f} s wall ({sim_s / max(walls[-1], 1e-9):.1f}x real time)"
-               + (f", video {writer.frames} frames -> {video}" if writer is not None else ""))
+      progress(f"episode {e + 1}/{cfg.num_episodes}: " +
+               (f"fell at {t_alive:.2f} s" if fell else f"survived {t_alive:.1f} s") +
+               f", mean vx {vx:+.3f} m/s (command {cfg.command_vx:g}), "
+               f"{walls[-1]:.1f} s wall ({sim_s / max(walls[-1], 1e-9):.1f}x real time)" +
+               (f", video {writer.frames} frames -> {video}" if writer is not None else ""))
   out = {k: np.stack([t[k] for t in trajs]) for k in trajs[0]}
   if gait_reference is not None:
     standing = np.zeros_like(out["phase"])
@@ -507,8 +516,7 @@ def interactive(onnx_path: str | os.PathLike, spec: robots.RobotSpec, cfg: Sim2S
         state["reset"] = False
       t0 = time.perf_counter()
       s = robot.sensors()
-      _, target = controller.act(s, command if command[0] <= 0 else
-                                 np.array([1.0, 0.0, 0.0, 0.0]))
+      _, target = controller.act(s, command if command[0] <= 0 else np.array([1.0, 0.0, 0.0, 0.0]))
       robot.step(target)
       if robot.fallen(robot.sensors()):
         state["reset"] = True

@@ -50,8 +50,8 @@ def headless_gl() -> tuple[str | None, str]:
   for backend in ("egl", "osmesa"):
     env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
     try:
-      r = subprocess.run([sys.executable, "-c", _GL_PROBE], env=env, capture_output=True,
-                         text=True, timeout=60)
+      r = subprocess.run([sys.executable, "-c", _GL_PROBE], env=env, capture_output=True, text=True,
+                         timeout=60)
     except subprocess.TimeoutExpired:
       failures.append(f"{backend}: timed out")
       continue

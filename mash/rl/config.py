@@ -73,7 +73,7 @@ class TrainConfig:
   num_epochs: int = 5
   num_minibatches: int = 4
   learning_rate: float = 3e-4
-  learning_rate_schedule: str = 'fixed'
+  learning_rate_schedule: str = "fixed"
   desired_kl: float = 0.01
   gamma: float = 0.99
   gae_lambda: float = 0.95
@@ -94,28 +94,30 @@ class TrainConfig:
   seed: int = 0
 
 
-LEARNING_RATE_SCHEDULES = ('fixed', 'adaptive_kl', 'linear')
+LEARNING_RATE_SCHEDULES = ("fixed", "adaptive_kl", "linear")
 # rsl_rl's bounds for the adaptive schedule.
 MIN_LEARNING_RATE, MAX_LEARNING_RATE = 1e-5, 1e-2
 # Caps on sizes, far above any run's (the gpu preset: 4096 envs x 48 steps, layers of 512) and low
 # enough that a typo is refused here instead of exhausting memory when the trainer starts.
-SIZE_CAPS = {'num_iterations': MAX_INT32, 'unroll_length': 10_000, 'num_envs': 2**20,
-             'iterations_per_call': 10_000, 'num_epochs': 1000, 'num_minibatches': MAX_INT32}
+SIZE_CAPS = {
+    "num_iterations": MAX_INT32, "unroll_length": 10_000, "num_envs": 2**20,
+    "iterations_per_call": 10_000, "num_epochs": 1000, "num_minibatches": MAX_INT32
+}
 MAX_LAYER_SIZE = 8192
 BOUNDS = (
     *(Bound(name, 1, cap) for name, cap in SIZE_CAPS.items()),
-    Bound('learning_rate', 0.0, 1.0, open_low=True),
-    Bound('desired_kl', 0.0, 10.0, open_low=True),
-    Bound('gamma', 0.0, 1.0, open_low=True),
-    Bound('gae_lambda', 0.0, 1.0),
-    Bound('clip_epsilon', 0.0, 10.0, open_low=True),
-    Bound('value_clip', -1e6, 1e6, '(<= 0: no value clip)'),
-    Bound('entropy_coef', 0.0, 1e3),
-    Bound('value_loss_coef', 0.0, 1e3),
-    Bound('max_grad_norm', 0.0, 1e6, open_low=True),
-    Bound('init_log_std', -20.0, 5.0, '(a log standard deviation)'),
-    Bound('obs_clip', 0.0, 1e6, open_low=True),
-    Bound('seed', 0, MAX_INT32),
+    Bound("learning_rate", 0.0, 1.0, open_low=True),
+    Bound("desired_kl", 0.0, 10.0, open_low=True),
+    Bound("gamma", 0.0, 1.0, open_low=True),
+    Bound("gae_lambda", 0.0, 1.0),
+    Bound("clip_epsilon", 0.0, 10.0, open_low=True),
+    Bound("value_clip", -1e6, 1e6, "(<= 0: no value clip)"),
+    Bound("entropy_coef", 0.0, 1e3),
+    Bound("value_loss_coef", 0.0, 1e3),
+    Bound("max_grad_norm", 0.0, 1e6, open_low=True),
+    Bound("init_log_std", -20.0, 5.0, "(a log standard deviation)"),
+    Bound("obs_clip", 0.0, 1e6, open_low=True),
+    Bound("seed", 0, MAX_INT32),
 )
 
 
@@ -158,28 +160,28 @@ def derived(config: TrainConfig, num_devices: int = 1) -> Derived:
   try:
     check_bounds(config, BOUNDS)
   except ValueError as e:
-    raise ValueError(f'TrainConfig.{e}.') from None
+    raise ValueError(f"TrainConfig.{e}.") from None
   if config.learning_rate_schedule not in LEARNING_RATE_SCHEDULES:
     raise ValueError(f"TrainConfig.learning_rate_schedule '{config.learning_rate_schedule}' is "
                      f"unknown; expected one of {', '.join(LEARNING_RATE_SCHEDULES)}.")
-  for name in ('actor_hidden', 'critic_hidden'):
+  for name in ("actor_hidden", "critic_hidden"):
     sizes = getattr(config, name)
     if not sizes or any(int(h) != h or not 1 <= h <= MAX_LAYER_SIZE for h in sizes):
-      raise ValueError(f'TrainConfig.{name} must be one or more layer sizes >= 1 and <= '
-                       f'{MAX_LAYER_SIZE}, got {sizes}.')
+      raise ValueError(f"TrainConfig.{name} must be one or more layer sizes >= 1 and <= "
+                       f"{MAX_LAYER_SIZE}, got {sizes}.")
   if num_devices < 1 or config.num_envs % num_devices:
-    raise ValueError(f'TrainConfig.num_envs={config.num_envs} must be divisible by the number of '
-                     f'devices ({num_devices}).')
+    raise ValueError(f"TrainConfig.num_envs={config.num_envs} must be divisible by the number of "
+                     f"devices ({num_devices}).")
   batch = config.num_envs * config.unroll_length
   if batch > MAX_INT32:
-    raise ValueError(f'TrainConfig: num_envs * unroll_length = {batch} transitions per iteration '
-                     f'must be at most {MAX_INT32} (int32 indices).')
+    raise ValueError(f"TrainConfig: num_envs * unroll_length = {batch} transitions per iteration "
+                     f"must be at most {MAX_INT32} (int32 indices).")
   local_batch = config.num_envs // num_devices * config.unroll_length
   if local_batch % config.num_minibatches:
     raise ValueError(
-        f'TrainConfig: num_envs/devices * unroll_length = {config.num_envs // num_devices} * '
-        f'{config.unroll_length} = {local_batch} must be divisible by num_minibatches='
-        f'{config.num_minibatches}.')
+        f"TrainConfig: num_envs/devices * unroll_length = {config.num_envs // num_devices} * "
+        f"{config.unroll_length} = {local_batch} must be divisible by num_minibatches="
+        f"{config.num_minibatches}.")
   return Derived(
       batch_size=batch,
       minibatch_size=batch // config.num_minibatches,
@@ -204,6 +206,6 @@ def config_from_dict(d: Mapping[str, Any]) -> TrainConfig:
   fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
   unknown = sorted(set(d) - set(fields))
   if unknown:
-    raise ValueError(f'Unknown TrainConfig field(s) {unknown}; expected some of {sorted(fields)}.')
+    raise ValueError(f"Unknown TrainConfig field(s) {unknown}; expected some of {sorted(fields)}.")
   kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
   return TrainConfig(**kwargs)

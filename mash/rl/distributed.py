@@ -44,14 +44,13 @@ from jax.sharding import NamedSharding
 
 
 def _check_coordinator(coordinator: str) -> None:
-  host, sep, port = str(coordinator).rpartition(':')
+  host, sep, port = str(coordinator).rpartition(":")
   if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
     raise ValueError(f"coordinator '{coordinator}' is not 'host:port' (e.g. '127.0.0.1:12355').")
 
 
 def initialize(coordinator: str, num_processes: int, process_id: int,
-               local_device_ids: int | list[int] | None = None,
-               timeout_s: int = 300) -> None:
+               local_device_ids: int | list[int] | None = None, timeout_s: int = 300) -> None:
   """Joins this process to a multi-process JAX run. Call before any other JAX work.
 
   On CPU the cross-process collectives go through Gloo (``jax_cpu_collectives_implementation``);
@@ -73,15 +72,15 @@ def initialize(coordinator: str, num_processes: int, process_id: int,
   """
   _check_coordinator(coordinator)
   if not isinstance(num_processes, int) or num_processes < 1:
-    raise ValueError(f'num_processes must be an integer >= 1, got {num_processes!r}.')
+    raise ValueError(f"num_processes must be an integer >= 1, got {num_processes!r}.")
   if not isinstance(process_id, int) or not 0 <= process_id < num_processes:
-    raise ValueError(f'process_id must be an integer in [0, {num_processes - 1}], '
-                     f'got {process_id!r}.')
+    raise ValueError(f"process_id must be an integer in [0, {num_processes - 1}], "
+                     f"got {process_id!r}.")
   if num_processes == 1 or jax.distributed.is_initialized():
     return
   platforms = jax.config.jax_platforms
-  if not platforms or 'cpu' in platforms:
-    jax.config.update('jax_cpu_collectives_implementation', 'gloo')
+  if not platforms or "cpu" in platforms:
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
   jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
                              process_id=process_id, local_device_ids=local_device_ids,
                              initialization_timeout=timeout_s)
@@ -90,7 +89,7 @@ def initialize(coordinator: str, num_processes: int, process_id: int,
   # differs by more between processes would fail ("Gloo context initialization failed:
   # DEADLINE_EXCEEDED"). Set it up now, while the processes are in step (initialize is a barrier).
   # Later collectives wait for slow peers without that limit (measured: 45 s skew is fine).
-  multihost_utils.sync_global_devices('mash.rl.distributed.initialize')
+  multihost_utils.sync_global_devices("mash.rl.distributed.initialize")
 
 
 def is_primary() -> bool:
@@ -98,7 +97,7 @@ def is_primary() -> bool:
   return jax.process_index() == 0
 
 
-def global_mesh(axis_name: str = 'devices', devices: list[Any] | None = None) -> jax.sharding.Mesh:
+def global_mesh(axis_name: str = "devices", devices: list[Any] | None = None) -> jax.sharding.Mesh:
   """A 1-D mesh over every device of every process, ordered by process then device id.
 
   Each process's devices are contiguous along the axis, so process ``p`` of ``n`` (one device
@@ -116,7 +115,7 @@ def global_mesh(axis_name: str = 'devices', devices: list[Any] | None = None) ->
 
 
 def _is_typed_key(x: Any) -> bool:
-  return hasattr(x, 'dtype') and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+  return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
 def _global_array(x: Any, sharding: NamedSharding, local: bool) -> jax.Array:

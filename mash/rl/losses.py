@@ -173,11 +173,11 @@ def mappo_loss_terms(log_probs: jax.Array, old_log_probs: jax.Array, advantages:
   entropy = jnp.sum(sample_mean(jnp.broadcast_to(entropy, log_probs.shape)))
   loss = policy_loss + config.value_loss_coef * value_loss - config.entropy_coef * entropy
   metrics = {
-      'policy_loss': policy_loss,
-      'value_loss': value_loss,
-      'entropy': entropy,
-      'approx_kl': jnp.sum(sample_mean((ratio - 1.0) - log_ratio)),
-      'clip_fraction': jnp.mean(sample_mean((jnp.abs(ratio - 1.0) > eps).astype(jnp.float32))),
+      "policy_loss": policy_loss,
+      "value_loss": value_loss,
+      "entropy": entropy,
+      "approx_kl": jnp.sum(sample_mean((ratio - 1.0) - log_ratio)),
+      "clip_fraction": jnp.mean(sample_mean((jnp.abs(ratio - 1.0) > eps).astype(jnp.float32))),
   }
   return loss, metrics
 
@@ -203,7 +203,7 @@ def mappo_loss(params: nets.Params, normalizer: normalization.Normalizer | None,
   log_probs = nets.per_agent(
       groups, {g.name: nets.gaussian_log_prob(dists[g.name], batch.actions[g.name]) for g in groups})
   entropy = nets.per_agent(groups, {g.name: nets.gaussian_entropy(dists[g.name]) for g in groups})
-  values = networks.value_apply(params, normalizer, batch.obs['critic'])
+  values = networks.value_apply(params, normalizer, batch.obs["critic"])
   advantages = batch.advantages
   if config.normalize_advantages:
     advantages = normalize_advantages(advantages, axis_name, batch.weights)

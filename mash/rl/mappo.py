@@ -27,14 +27,12 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mash.rl import losses
+from mash.rl import losses, normalization
 from mash.rl import networks as nets
-from mash.rl import normalization
-from mash.sim.agents import AgentGroup, assemble_action
 from mash.rl.config import MAX_LEARNING_RATE, MIN_LEARNING_RATE, TrainConfig, derived
+from mash.sim.agents import AgentGroup, assemble_action
 
 Metrics = dict[str, jax.Array]
-
 
 
 class MultiAgentEnv(Protocol):
@@ -212,9 +210,9 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
   parameters raveled into one vector (``optax.flatten``): the same math, but a handful of fused
   kernels instead of a few per parameter array, which shortens compilation.
   """
-  if config.learning_rate_schedule == 'adaptive_kl':
+  if config.learning_rate_schedule == "adaptive_kl":
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=config.learning_rate)
-  elif config.learning_rate_schedule == 'linear':
+  elif config.learning_rate_schedule == "linear":
     adam = optax.inject_hyperparams(optax.adam)(learning_rate=linear_learning_rate(config))
   else:
     adam = optax.adam(config.learning_rate)
@@ -224,20 +222,19 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 def linear_learning_rate(config: TrainConfig) -> optax.Schedule:
   """``learning_rate`` decaying linearly to 0 at the last minibatch step of ``num_iterations``
   (PureJaxRL's and CleanRL's ``anneal_lr``): ``step -> []``."""
-  return optax.linear_schedule(config.learning_rate, 0.0, config.num_iterations *
-                               config.num_epochs * config.num_minibatches)
+  return optax.linear_schedule(config.learning_rate, 0.0,
+                               config.num_iterations * config.num_epochs * config.num_minibatches)
 
 
 def injected_learning_rate(opt_state: optax.OptState) -> jax.Array:
   """``[]`` the rate in the optimizer state under ``'adaptive_kl'`` or ``'linear'`` (for
   ``'linear'``, the last step's; the schedule's own step counter sits in the state under the
   same name, hence the filter)."""
-  return optax.tree_utils.tree_get(opt_state, 'learning_rate',
-                                   filtering=lambda _, value: hasattr(value, 'dtype'))
+  return optax.tree_utils.tree_get(opt_state, "learning_rate",
+                                   filtering=lambda _, value: hasattr(value, "dtype"))
 
 
-def adapt_learning_rate(learning_rate: jax.Array, kl: jax.Array,
-                        desired_kl: float) -> jax.Array:
+def adapt_learning_rate(learning_rate: jax.Array, kl: jax.Array, desired_kl: float) -> jax.Array:
   """rsl_rl's adaptive rule: ``[] -> []``, the rate / 1.5 when ``kl > 2 desired_kl``, x 1.5 when
   ``0 < kl < desired_kl / 2``, else unchanged; clipped to [MIN_LEARNING_RATE, MAX_LEARNING_RATE]."""
   lower = jnp.maximum(learning_rate / 1.5, MIN_LEARNING_RATE)
@@ -247,7 +244,7 @@ def adapt_learning_rate(learning_rate: jax.Array, kl: jax.Array,
 
 
 def _obs_sizes(groups: tuple[AgentGroup, ...], critic_obs_size: int) -> dict[str, int]:
-  return {**{g.name: g.obs_dim for g in groups}, 'critic': critic_obs_size}
+  return {**{g.name: g.obs_dim for g in groups}, "critic": critic_obs_size}
 
 
 def _device_key(key: jax.Array, axis_name: str | None) -> jax.Array:
@@ -292,8 +289,8 @@ def _screen_blowups(state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
   critic observation is not finite; its reward and critic observation are zeroed so that no NaN
   reaches GAE (``0 * NaN`` is NaN).
   """
-  reward, next_critic_obs = state.reward, state.info['next_critic_obs']
-  flagged = state.info.get('nan_reset', jnp.zeros_like(reward)) > 0
+  reward, next_critic_obs = state.reward, state.info["next_critic_obs"]
+  flagged = state.info.get("nan_reset", jnp.zeros_like(reward)) > 0
   obs_finite = jnp.all(jnp.isfinite(next_critic_obs.reshape(reward.shape + (-1,))), axis=-1)
   blown = flagged | ~jnp.isfinite(reward) | ~obs_finite
   mask = blown.reshape(blown.shape + (1,) * (next_critic_obs.ndim - blown.ndim))
@@ -329,13 +326,13 @@ def _make_init(config: TrainConfig, env: MultiAgentEnv, networks: nets.Networks,
   return init
 
 
-def _make_rollout(config: TrainConfig, env: MultiAgentEnv, networks: nets.Networks
-                  ) -> Callable[..., tuple[RolloutCarry, Transition]]:
+def _make_rollout(config: TrainConfig, env: MultiAgentEnv,
+                  networks: nets.Networks) -> Callable[..., tuple[RolloutCarry, Transition]]:
   groups = tuple(env.agent_groups)
   batch_step = jax.vmap(env.step)
 
-  def step(params: nets.Params, normalizer: normalization.Normalizer | None,
-           carry: RolloutCarry, step_key: jax.Array) -> tuple[RolloutCarry, Transition]:
+  def step(params: nets.Params, normalizer: normalization.Normalizer | None, carry: RolloutCarry,
+           step_key: jax.Array) -> tuple[RolloutCarry, Transition]:
     obs = carry.env_state.obs
     dists = networks.policy_apply(params, normalizer, obs)
     actions = nets.sample_actions(step_key, dists)
@@ -344,21 +341,20 @@ def _make_rollout(config: TrainConfig, env: MultiAgentEnv, networks: nets.Networ
     next_state = batch_step(carry.env_state, assemble_action(groups, actions))
     done = next_state.done
     reward, next_critic_obs, nan_reset = _screen_blowups(next_state)
-    paper = jnp.where(nan_reset > 0, 0.0, next_state.metrics.get('paper_reward', reward))
+    paper = jnp.where(nan_reset > 0, 0.0, next_state.metrics.get("paper_reward", reward))
     ret = carry.episode_return + reward
     paper_ret = carry.episode_paper_return + paper
     length = carry.episode_length + 1.0
     carry = RolloutCarry(env_state=next_state, episode_return=ret * (1.0 - done),
-                         episode_length=length * (1.0 - done),
-                         episode_paper_return=paper_ret * (1.0 - done),
-                         done_return=carry.done_return + jnp.sum(ret * done),
+                         episode_length=length * (1.0 - done), episode_paper_return=paper_ret *
+                         (1.0 - done), done_return=carry.done_return + jnp.sum(ret * done),
                          done_length=carry.done_length + jnp.sum(length * done),
                          done_paper_return=carry.done_paper_return + jnp.sum(paper_ret * done),
                          done_count=carry.done_count + jnp.sum(done))
-    transition = Transition(
-        obs=obs, actions=actions, log_probs=log_probs, reward=reward, done=done,
-        truncation=next_state.info['truncation'], next_critic_obs=next_critic_obs,
-        env_metrics=next_state.metrics, nan_reset=nan_reset)
+    transition = Transition(obs=obs, actions=actions, log_probs=log_probs, reward=reward, done=done,
+                            truncation=next_state.info["truncation"],
+                            next_critic_obs=next_critic_obs, env_metrics=next_state.metrics,
+                            nan_reset=nan_reset)
     return carry, transition
 
   def rollout(params: nets.Params, normalizer: normalization.Normalizer | None, env_state: Any,
@@ -377,27 +373,26 @@ def _make_rollout(config: TrainConfig, env: MultiAgentEnv, networks: nets.Networ
 
 
 def _make_update(config: TrainConfig, networks: nets.Networks,
-                 optimizer: optax.GradientTransformation, axis_name: str | None
-                 ) -> Callable[..., tuple[OptimizerState, Metrics]]:
+                 optimizer: optax.GradientTransformation,
+                 axis_name: str | None) -> Callable[..., tuple[OptimizerState, Metrics]]:
 
   def minibatch_step(opt: OptimizerState, batch: losses.LossBatch,
                      normalizer: normalization.Normalizer | None) -> tuple[OptimizerState, Metrics]:
     """One MAPPO gradient step (gradients averaged over devices when sharded)."""
     grads, metrics = loss_gradients(opt.params, normalizer, batch, networks, config, axis_name)
     opt_state = opt.opt_state
-    if config.learning_rate_schedule == 'adaptive_kl':
+    if config.learning_rate_schedule == "adaptive_kl":
       # The KL of the current policy from the rollout's on this minibatch, before the step (as
       # rsl_rl); averaged over devices above, so every device sets the same rate.
-      learning_rate = adapt_learning_rate(
-          injected_learning_rate(opt_state), metrics['approx_kl'],
-          config.desired_kl)
+      learning_rate = adapt_learning_rate(injected_learning_rate(opt_state), metrics["approx_kl"],
+                                          config.desired_kl)
       opt_state = optax.tree_utils.tree_set(opt_state, learning_rate=learning_rate)
-      metrics = {**metrics, 'learning_rate': learning_rate}
+      metrics = {**metrics, "learning_rate": learning_rate}
     updates, opt_state = optimizer.update(grads, opt_state, opt.params)
-    if config.learning_rate_schedule == 'linear':  # the rate this step used
-      metrics = {**metrics, 'learning_rate': injected_learning_rate(opt_state)}
-    elif config.learning_rate_schedule == 'fixed':
-      metrics = {**metrics, 'learning_rate': jnp.asarray(config.learning_rate, jnp.float32)}
+    if config.learning_rate_schedule == "linear":  # the rate this step used
+      metrics = {**metrics, "learning_rate": injected_learning_rate(opt_state)}
+    elif config.learning_rate_schedule == "fixed":
+      metrics = {**metrics, "learning_rate": jnp.asarray(config.learning_rate, jnp.float32)}
     return OptimizerState(optax.apply_updates(opt.params, updates), opt_state), metrics
 
   def update(opt: OptimizerState, normalizer: normalization.Normalizer | None,
@@ -409,8 +404,8 @@ def _make_update(config: TrainConfig, networks: nets.Networks,
 
     def epoch(opt: OptimizerState, epoch_key: jax.Array) -> tuple[OptimizerState, Metrics]:
       perm = jnp.argsort(jax.random.bits(epoch_key, (n,)))  # one draw + one sort
-      shuffled = jax.tree.map(
-          lambda x: x[perm].reshape((config.num_minibatches, mb) + x.shape[1:]), batch)
+      shuffled = jax.tree.map(lambda x: x[perm].reshape((config.num_minibatches, mb) + x.shape[1:]),
+                              batch)
       return jax.lax.scan(lambda o, b: minibatch_step(o, b, normalizer), opt, shuffled)
 
     opt, metrics = jax.lax.scan(epoch, opt, jax.random.split(key, config.num_epochs))
@@ -433,9 +428,8 @@ def _episode_stats(ro: RolloutCarry, previous: EpisodeStats,
   completed = lambda total, last: jnp.where(any_done, _sum(total, axis_name) / denom, last)
   episodes = EpisodeStats(
       running_return=ro.episode_return, running_length=ro.episode_length,
-      last_return=completed(ro.done_return, previous.last_return),
-      last_length=completed(ro.done_length, previous.last_length),
-      running_paper_return=ro.episode_paper_return,
+      last_return=completed(ro.done_return, previous.last_return), last_length=completed(
+          ro.done_length, previous.last_length), running_paper_return=ro.episode_paper_return,
       last_paper_return=completed(ro.done_paper_return, previous.last_paper_return))
   return episodes, done_count
 
@@ -477,30 +471,30 @@ def make_mappo(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
     if config.normalize_observations:
       stats = normalization.update_normalizer(stats, tr.obs, axis_name)
 
-    values = networks.value_apply(state.params, normalizer, tr.obs['critic'])
+    values = networks.value_apply(state.params, normalizer, tr.obs["critic"])
     next_values = networks.value_apply(state.params, normalizer, tr.next_critic_obs)
     # Steps into a blown-up state: zero advantage (the episode counts as cut before them, not as a
     # fall) and weight 0 in the advantage statistics and the loss.
     valid = 1.0 - tr.nan_reset
-    advantages, returns = losses.compute_gae(tr.reward, values, next_values, tr.done,
-                                             tr.truncation, config.gamma, config.gae_lambda,
-                                             valid=valid)
-    batch = jax.tree.map(_flatten_time, losses.LossBatch(
-        obs=tr.obs, actions=tr.actions, log_probs=tr.log_probs, values=values,
-        advantages=advantages, returns=returns, weights=valid))
+    advantages, returns = losses.compute_gae(tr.reward, values, next_values, tr.done, tr.truncation,
+                                             config.gamma, config.gae_lambda, valid=valid)
+    batch = jax.tree.map(
+        _flatten_time,
+        losses.LossBatch(obs=tr.obs, actions=tr.actions, log_probs=tr.log_probs, values=values,
+                         advantages=advantages, returns=returns, weights=valid))
     opt, loss_metrics = update(OptimizerState(state.params, state.opt_state), normalizer, batch,
                                sgd_key)
     episodes, done_count = _episode_stats(ro, state.episodes, axis_name)
     metrics = {
-        'episode_reward': episodes.last_return,
-        'episode_length': episodes.last_length,
-        'paper_episode_reward': episodes.last_paper_return,
-        'episodes_completed': done_count,
-        'step_reward': _mean(tr.reward, axis_name),
-        'done_rate': _mean(tr.done, axis_name),
-        'nan_resets': _sum(tr.nan_reset, axis_name),
-        'value_mean': _mean(values, axis_name),
-        'action_std': nets.mean_action_std(opt.params),
+        "episode_reward": episodes.last_return,
+        "episode_length": episodes.last_length,
+        "paper_episode_reward": episodes.last_paper_return,
+        "episodes_completed": done_count,
+        "step_reward": _mean(tr.reward, axis_name),
+        "done_rate": _mean(tr.done, axis_name),
+        "nan_resets": _sum(tr.nan_reset, axis_name),
+        "value_mean": _mean(values, axis_name),
+        "action_std": nets.mean_action_std(opt.params),
         **{k: _mean(v, axis_name) for k, v in tr.env_metrics.items()},
         **loss_metrics,
     }
@@ -511,9 +505,8 @@ def make_mappo(config: TrainConfig, env: MultiAgentEnv, axis_name: str | None = 
 
   def train_epoch(state: TrainState) -> tuple[TrainState, Metrics]:
     """``iterations_per_call`` iterations; metrics stacked to ``[iterations_per_call]``."""
-    return jax.lax.scan(lambda s, _: iteration(s), state, None,
-                        length=config.iterations_per_call)
+    return jax.lax.scan(lambda s, _: iteration(s), state, None, length=config.iterations_per_call)
 
-  return Mappo(config=config, env=env, networks=networks, optimizer=optimizer,
-               axis_name=axis_name, init=_make_init(config, env, networks, optimizer),
-               iteration=iteration, update=update, train_epoch=train_epoch)
+  return Mappo(config=config, env=env, networks=networks, optimizer=optimizer, axis_name=axis_name,
+               init=_make_init(config, env, networks, optimizer), iteration=iteration,
+               update=update, train_epoch=train_epoch)

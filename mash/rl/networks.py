@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mash.rl import normalization
-from mash.sim.agents import AgentGroup, assemble_action, total_agents
 from mash.rl.config import TrainConfig
+from mash.sim.agents import AgentGroup, assemble_action, total_agents
 
 Params = dict[str, Any]
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -80,7 +80,7 @@ class MLP(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     for width in self.hidden_sizes:
       x = elu(nn.Dense(width)(x))
-    init = nn.initializers.variance_scaling(self.out_scale, 'fan_in', 'truncated_normal')
+    init = nn.initializers.variance_scaling(self.out_scale, "fan_in", "truncated_normal")
     return nn.Dense(self.out_size, kernel_init=init)(x)
 
 
@@ -101,7 +101,7 @@ class GroupActor(nn.Module):
   def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``obs [..., obs_dim]`` -> ``(mean [..., act_dim], log_std [act_dim])``."""
     mean = MLP(self.hidden_sizes, self.act_dim, out_scale=0.01)(obs)
-    log_std = self.param('log_std', nn.initializers.constant(self.init_log_std), (self.act_dim,))
+    log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.act_dim,))
     return mean, log_std
 
 
@@ -121,10 +121,10 @@ class PerAgentActor(nn.Module):
   @nn.compact
   def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``obs [..., n_agents, obs_dim]`` -> ``(mean [..., n_agents, act_dim], log_std [n_agents, act_dim])``."""
-    actors = nn.vmap(GroupActor, in_axes=0, out_axes=0, variable_axes={'params': 0},
-                     split_rngs={'params': True}, axis_size=self.n_agents)
-    mean, log_std = actors(self.act_dim, self.hidden_sizes, self.init_log_std)(
-        jnp.moveaxis(obs, -2, 0))
+    actors = nn.vmap(GroupActor, in_axes=0, out_axes=0, variable_axes={"params": 0},
+                     split_rngs={"params": True}, axis_size=self.n_agents)
+    mean, log_std = actors(self.act_dim, self.hidden_sizes,
+                           self.init_log_std)(jnp.moveaxis(obs, -2, 0))
     return jnp.moveaxis(mean, 0, -2), log_std
 
 
@@ -160,8 +160,8 @@ class LocalCritic(nn.Module):
   def __call__(self, critic_obs: jax.Array) -> jax.Array:
     """``[..., n_agents * obs_dim]`` (each agent's padded observation) -> ``[..., n_agents]``."""
     x = critic_obs.reshape(critic_obs.shape[:-1] + (self.n_agents, -1))
-    critics = nn.vmap(MLP, in_axes=0, out_axes=0, variable_axes={'params': 0},
-                      split_rngs={'params': True}, axis_size=self.n_agents)
+    critics = nn.vmap(MLP, in_axes=0, out_axes=0, variable_axes={"params": 0},
+                      split_rngs={"params": True}, axis_size=self.n_agents)
     values = critics(self.hidden_sizes, 1)(jnp.moveaxis(x, -2, 0))
     return jnp.moveaxis(values[..., 0], 0, -1)
 
@@ -230,7 +230,7 @@ def make_networks(groups: Sequence[AgentGroup], critic_obs_size: int,
         for g, k in zip(groups, keys[:-1])
     }
     critic_params = critic.init(keys[-1], jnp.zeros((critic_obs_size,), jnp.float32))
-    return {'actors': actor_params, 'critic': critic_params}
+    return {"actors": actor_params, "critic": critic_params}
 
   def policy_apply(params: Params, normalizer: normalization.Normalizer | None,
                    obs: Mapping[str, jax.Array]) -> dict[str, GaussianParams]:
@@ -243,20 +243,21 @@ def make_networks(groups: Sequence[AgentGroup], critic_obs_size: int,
         # parameters and results, but independent matrix chains, which XLA's CPU runtime runs
         # concurrently with each other and with the critic (measured on 2 CPU cores: the MASH
         # update 8 % faster; single-agent PPO's, with its one agent, 9 %).
-        per_agent = [actors[g.name].apply(params['actors'][g.name], x[..., i, :])
-                     for i in range(g.n_agents)]
+        per_agent = [
+            actors[g.name].apply(params["actors"][g.name], x[..., i, :]) for i in range(g.n_agents)
+        ]
         mean = jnp.stack([m for m, _ in per_agent], axis=-2)
         log_std = per_agent[0][1]
       else:
-        mean, log_std = actors[g.name].apply(params['actors'][g.name], x)
+        mean, log_std = actors[g.name].apply(params["actors"][g.name], x)
       out[g.name] = GaussianParams(mean=mean, log_std=log_std)
     return out
 
   def value_apply(params: Params, normalizer: normalization.Normalizer | None,
                   critic_obs: jax.Array) -> jax.Array:
     """``critic_obs [..., C]`` -> ``[..., total_agents]`` (single head broadcast when shared)."""
-    x = maybe_normalize(normalizer, 'critic', critic_obs)
-    values = critic.apply(params['critic'], x)
+    x = maybe_normalize(normalizer, "critic", critic_obs)
+    values = critic.apply(params["critic"], x)
     return jnp.broadcast_to(values, values.shape[:-1] + (n_agents,))
 
   return Networks(groups=groups, n_value_heads=n_heads, init=init, policy_apply=policy_apply,
@@ -289,8 +290,10 @@ def sample_actions(key: jax.Array, dists: Mapping[str, GaussianParams]) -> dict[
   sizes = [d.mean.shape[-2] * d.mean.shape[-1] for _, d in items]
   noise = jax.random.normal(key, batch_shape + (sum(sizes),), items[0][1].mean.dtype)
   chunks = jnp.split(noise, np.cumsum(sizes)[:-1], axis=-1)
-  return {name: d.mean + jnp.exp(d.log_std) * z.reshape(d.mean.shape)
-          for (name, d), z in zip(items, chunks)}
+  return {
+      name: d.mean + jnp.exp(d.log_std) * z.reshape(d.mean.shape)
+      for (name, d), z in zip(items, chunks)
+  }
 
 
 def per_agent(groups: Sequence[AgentGroup], values: Mapping[str, jax.Array]) -> jax.Array:
@@ -305,6 +308,7 @@ def make_policy_fn(networks: Networks, deterministic: bool = True) -> Callable[.
     ``policy(params, normalizer, obs, key) -> flat action [..., action_size]``: the mean action when
     ``deterministic``, else a sample (``key`` unused when deterministic).
   """
+
   def policy(params: Params, normalizer: normalization.Normalizer | None,
              obs: Mapping[str, jax.Array], key: jax.Array | None = None) -> jax.Array:
     dists = networks.policy_apply(params, normalizer, obs)
@@ -319,6 +323,6 @@ def make_policy_fn(networks: Networks, deterministic: bool = True) -> Callable[.
 
 def mean_action_std(params: Params) -> jax.Array:
   """``[]`` mean of ``exp(log_std)`` over every actor's action dims (and agents, if not shared)."""
-  flat = flax.traverse_util.flatten_dict(params['actors'])
-  stds = [jnp.exp(v).reshape(-1) for k, v in flat.items() if k[-1] == 'log_std']
+  flat = flax.traverse_util.flatten_dict(params["actors"])
+  stds = [jnp.exp(v).reshape(-1) for k, v in flat.items() if k[-1] == "log_std"]
   return jnp.mean(jnp.concatenate(stds))

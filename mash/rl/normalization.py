@@ -51,7 +51,8 @@ def init_stats(dim: int) -> RunningStats:
                       m2=jnp.zeros((dim,), jnp.float32))
 
 
-def update_stats(stats: RunningStats, batch: jax.Array, axis_name: str | None = None) -> RunningStats:
+def update_stats(stats: RunningStats, batch: jax.Array,
+                 axis_name: str | None = None) -> RunningStats:
   """Merges a batch of observations into the statistics.
 
   Args:

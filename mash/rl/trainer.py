@@ -21,17 +21,18 @@ from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.sharding import NamedSharding, PartitionSpec as P
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from mash.rl import distributed
-from mash.rl import mappo
+from mash.rl import distributed, mappo
 from mash.rl import networks as nets
 from mash.rl.config import TrainConfig, derived
 
 # XLA options that halve CPU compile time at some run-time cost: for tests and smoke runs on CPU.
-FAST_COMPILE_OPTIONS = {'xla_backend_optimization_level': 0,
-                        'xla_llvm_disable_expensive_passes': True}
-AXIS = 'devices'  # the mesh axis the env batch is split over
+FAST_COMPILE_OPTIONS = {
+    "xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True
+}
+AXIS = "devices"  # the mesh axis the env batch is split over
 
 
 class Trainer(NamedTuple):
@@ -106,7 +107,7 @@ def make_trainer(config: TrainConfig, env: mappo.MultiAgentEnv, seeds: int = 1,
       per device (:func:`mash.rl.config.derived`).
   """
   if mesh is not None and seeds != 1:
-    raise ValueError(f'a mesh trains one seed; got seeds={seeds}')
+    raise ValueError(f"a mesh trains one seed; got seeds={seeds}")
   if mesh is not None:
     return _on_mesh(config, env, mesh, compiler_options)
   algo = mappo.make_mappo(config, env)
@@ -117,9 +118,9 @@ def make_trainer(config: TrainConfig, env: mappo.MultiAgentEnv, seeds: int = 1,
   return Trainer(
       config=config, env=env, networks=algo.networks, mappo=algo, seeds=1, devices=1, key=key,
       init=lambda key_=None, env_steps=None: init(key if key_ is None else key_, env_steps),
-      state_shapes=lambda: jax.eval_shape(algo.init, key),
-      train_epoch=jax.jit(algo.train_epoch, donate_argnums=0, compiler_options=compiler_options),
-      to_host=jax.device_get)
+      state_shapes=lambda: jax.eval_shape(algo.init, key), train_epoch=jax.jit(
+          algo.train_epoch, donate_argnums=0,
+          compiler_options=compiler_options), to_host=jax.device_get)
 
 
 def _many_seeds(algo: mappo.Mappo, seeds: int,
@@ -136,11 +137,11 @@ def _many_seeds(algo: mappo.Mappo, seeds: int,
 
   epoch = jax.vmap(algo.train_epoch)
   return Trainer(
-      config=algo.config, env=algo.env, networks=algo.networks, mappo=algo, seeds=seeds,
-      devices=1, key=keys, init=init,
+      config=algo.config, env=algo.env, networks=algo.networks, mappo=algo, seeds=seeds, devices=1,
+      key=keys, init=init,
       state_shapes=lambda: jax.eval_shape(jax.vmap(algo.init, in_axes=(0, None)), keys, None),
-      train_epoch=jax.jit(epoch, donate_argnums=0, compiler_options=compiler_options),
-      to_host=jax.device_get)
+      train_epoch=jax.jit(epoch, donate_argnums=0,
+                          compiler_options=compiler_options), to_host=jax.device_get)
 
 
 def state_partition_specs(axis_name: str = AXIS) -> mappo.TrainState:
@@ -148,11 +149,9 @@ def state_partition_specs(axis_name: str = AXIS) -> mappo.TrainState:
   sums split over ``axis_name``, everything else replicated."""
   batch = P(axis_name)
   return mappo.TrainState(
-      params=P(), opt_state=P(), normalizer=P(), env_state=batch,
-      episodes=mappo.EpisodeStats(running_return=batch, running_length=batch, last_return=P(),
-                                  last_length=P(), running_paper_return=batch,
-                                  last_paper_return=P()),
-      rng=P(), iteration=P())
+      params=P(), opt_state=P(), normalizer=P(), env_state=batch, episodes=mappo.EpisodeStats(
+          running_return=batch, running_length=batch, last_return=P(), last_length=P(),
+          running_paper_return=batch, last_paper_return=P()), rng=P(), iteration=P())
 
 
 def state_shardings(mesh: jax.sharding.Mesh, state: Any, axis_name: str = AXIS) -> Any:
@@ -169,8 +168,8 @@ def _on_mesh(config: TrainConfig, env: mappo.MultiAgentEnv, mesh: jax.sharding.M
   single = mappo.make_mappo(config, env)
   sharded = mappo.make_mappo(config, env, axis_name=AXIS)
   specs = state_partition_specs(AXIS)
-  epoch = jax.shard_map(sharded.train_epoch, mesh=mesh, in_specs=(specs,),
-                        out_specs=(specs, P()), check_vma=False)
+  epoch = jax.shard_map(sharded.train_epoch, mesh=mesh, in_specs=(specs,), out_specs=(specs, P()),
+                        check_vma=False)
   # Explicit output shardings: left to itself, jit returns zero-size leaves (MJX keeps some, e.g.
   # ``act`` [B, 0]) replicated rather than split, the next call sees a different input sharding
   # and compiles the whole epoch a second time.
@@ -188,8 +187,8 @@ def _on_mesh(config: TrainConfig, env: mappo.MultiAgentEnv, mesh: jax.sharding.M
 
   def state_shapes():
     shapes = jax.eval_shape(single.init, key)
-    return jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-                        shapes, state_shardings(mesh, shapes))
+    return jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), shapes,
+                        state_shardings(mesh, shapes))
 
   return Trainer(config=config, env=env, networks=single.networks, mappo=sharded, seeds=1,
                  devices=mesh.size, key=key, init=init, state_shapes=state_shapes,

@@ -56,26 +56,29 @@ class Restored(NamedTuple):
 
 
 def _is_empty(x: Any) -> bool:
-  return hasattr(x, 'shape') and math.prod(x.shape) == 0
+  return hasattr(x, "shape") and math.prod(x.shape) == 0
 
 
 def _to_flat(tree: Any) -> dict[str, Any]:
   """``{key path: leaf}`` without zero-size leaves (MJX keeps some, e.g. ``act`` of a model with no
   activations; Orbax refuses to save them and they carry no information). A flat dict also keeps
   the on-disk layout independent of how JAX flattens dataclass pytrees."""
-  return {jax.tree_util.keystr(path): leaf
-          for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0] if not _is_empty(leaf)}
+  return {
+      jax.tree_util.keystr(path): leaf
+      for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]
+      if not _is_empty(leaf)
+  }
 
 
 # What a policy needs; what learning needs (everything but the env states).
-POLICY_FIELDS = ('params', 'normalizer')
-LEARNING_FIELDS = ('params', 'opt_state', 'normalizer', 'episodes', 'rng', 'iteration')
+POLICY_FIELDS = ("params", "normalizer")
+LEARNING_FIELDS = ("params", "opt_state", "normalizer", "episodes", "rng", "iteration")
 
 
 def _in_fields(key: str, fields: Sequence[str] | None) -> bool:
   """Whether the flat key (``.params[...]...``) lies under one of the top-level ``fields``."""
-  return fields is None or any(key == f'.{f}' or key.startswith((f'.{f}.', f'.{f}['))
-                               for f in fields)
+  return fields is None or any(
+      key == f".{f}" or key.startswith((f".{f}.", f".{f}[")) for f in fields)
 
 
 def _from_flat(flat: dict[str, Any], template: Any, fields: Sequence[str] | None = None) -> Any:
@@ -89,7 +92,7 @@ def _from_flat(flat: dict[str, Any], template: Any, fields: Sequence[str] | None
     if _is_empty(leaf) or not wanted(key):
       leaves.append(_zeros(leaf))
     elif key not in flat:
-      raise KeyError(f'the checkpoint has no {key}')
+      raise KeyError(f"the checkpoint has no {key}")
     else:
       leaves.append(flat[key])
   return jax.tree.unflatten(treedef, leaves)
@@ -99,19 +102,20 @@ def _zeros(leaf: Any) -> jax.Array:
   """Zeros shaped like a template leaf, laid out as its sharding says when it has one (a global
   template of a multi-device run: every process makes the same array, and the next jitted call sees
   the layout it was compiled for)."""
-  sharding = getattr(leaf, 'sharding', None)
+  sharding = getattr(leaf, "sharding", None)
   if isinstance(sharding, jax.sharding.Sharding):
     host = np.zeros(leaf.shape, leaf.dtype)
     return jax.make_array_from_callback(leaf.shape, sharding, lambda index: host[index])
   return jnp.zeros(leaf.shape, leaf.dtype)
 
 
-def make_manager(directory: str | os.PathLike, max_to_keep: int | None = 5) -> ocp.CheckpointManager:
+def make_manager(directory: str | os.PathLike,
+                 max_to_keep: int | None = 5) -> ocp.CheckpointManager:
   """A checkpoint manager over ``directory`` (created if missing) keeping the last ``max_to_keep``
   steps (``None``: keep all)."""
   options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
   return ocp.CheckpointManager(os.path.abspath(os.fspath(directory)), options=options,
-                               item_names=('state', 'config'))
+                               item_names=("state", "config"))
 
 
 def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainConfig,
@@ -135,12 +139,14 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, config: TrainCon
       from several threads, are silenced). The step's temporary directory is left, never taken
       for a step; a later save of the step replaces it.
   """
-  flat = {k: v for k, v in _to_flat(jax.tree.map(_key_to_data, state)).items()
-          if _in_fields(k, fields)}
+  flat = {
+      k: v for k, v in _to_flat(jax.tree.map(_key_to_data, state)).items() if _in_fields(k, fields)
+  }
   try:
     with _quiet_absl(), _quiet_failed_writes():
-      saved = manager.save(step, args=ocp.args.Composite(
-          state=ocp.args.StandardSave(flat), config=ocp.args.JsonSave(config_to_dict(config))))
+      saved = manager.save(
+          step, args=ocp.args.Composite(state=ocp.args.StandardSave(flat),
+                                        config=ocp.args.JsonSave(config_to_dict(config))))
       if wait:
         manager.wait_until_finished()
   except Exception as e:  # noqa: BLE001 - only a refusing storage is turned into one line
@@ -170,15 +176,15 @@ def restore(manager: ocp.CheckpointManager, step: int, template_state: Any,
   # A leaf without a sharding in the template is read with the sharding it was saved with; when
   # that names devices this process does not have (a checkpoint of a multi-device or multi-process
   # run read by one process: evaluation, export), it lands on the first local device instead.
-  target = ocp.args.StandardRestore(_to_flat(abstract) if fields is None else None,
-                                    fallback_sharding=jax.sharding.SingleDeviceSharding(
-                                        jax.local_devices()[0]))
+  target = ocp.args.StandardRestore(
+      _to_flat(abstract) if fields is None else None,
+      fallback_sharding=jax.sharding.SingleDeviceSharding(jax.local_devices()[0]))
   restored = manager.restore(step, args=ocp.args.Composite(state=target,
                                                            config=ocp.args.JsonRestore()))
-  state = jax.tree.map(_match_commitment, _from_flat(restored['state'], abstract, fields),
+  state = jax.tree.map(_match_commitment, _from_flat(restored["state"], abstract, fields),
                        template_state)
   state = jax.tree.map(_data_to_key, state, template_state)
-  return Restored(step=step, state=state, config=config_from_dict(restored['config']))
+  return Restored(step=step, state=state, config=config_from_dict(restored["config"]))
 
 
 def restore_flat(manager: ocp.CheckpointManager, step: int, fields: Sequence[str]) -> Restored:
@@ -186,16 +192,17 @@ def restore_flat(manager: ocp.CheckpointManager, step: int, fields: Sequence[str
   ``state`` is ``{key path: array}``, the on-disk layout of :func:`save` (see :func:`unflatten`),
   as saved: with a leading seed axis for a multi-seed run. Arrays are uncommitted, on this process's
   first device. KeyError when a field holds nothing in the checkpoint."""
-  target = ocp.args.StandardRestore(None, fallback_sharding=jax.sharding.SingleDeviceSharding(
-      jax.local_devices()[0]))
+  target = ocp.args.StandardRestore(
+      None, fallback_sharding=jax.sharding.SingleDeviceSharding(jax.local_devices()[0]))
   restored = manager.restore(step, args=ocp.args.Composite(state=target,
                                                            config=ocp.args.JsonRestore()))
-  flat = {k: jnp.asarray(np.asarray(v)) for k, v in restored['state'].items()
-          if _in_fields(k, fields)}
+  flat = {
+      k: jnp.asarray(np.asarray(v)) for k, v in restored["state"].items() if _in_fields(k, fields)
+  }
   for field in fields:
     if not any(_in_fields(k, (field,)) for k in flat):
-      raise KeyError(f'the checkpoint has no .{field}')
-  return Restored(step=step, state=flat, config=config_from_dict(restored['config']))
+      raise KeyError(f"the checkpoint has no .{field}")
+  return Restored(step=step, state=flat, config=config_from_dict(restored["config"]))
 
 
 _KEY_PART = re.compile(r"\.([A-Za-z_]\w*)|\['((?:[^'\\]|\\.)*)'\]")
@@ -215,7 +222,7 @@ def unflatten(flat: dict[str, Any]) -> dict[str, Any]:
       parts.append(match.group(1) if match.group(1) is not None else match.group(2))
       end = match.end()
     if end != len(key) or not parts:
-      raise ValueError(f'checkpoint key {key!r} is not a path of dict keys and fields')
+      raise ValueError(f"checkpoint key {key!r} is not a path of dict keys and fields")
     node = tree
     for part in parts[:-1]:
       node = node.setdefault(part, {})
@@ -224,7 +231,7 @@ def unflatten(flat: dict[str, Any]) -> dict[str, Any]:
 
 
 def _is_typed_key(x: Any) -> bool:
-  return hasattr(x, 'dtype') and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+  return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
 def _key_to_data(x: Any) -> Any:
@@ -239,31 +246,31 @@ def _key_to_data_shape(x: Any) -> Any:
 def _data_to_key(restored: Any, template: Any) -> Any:
   if not _is_typed_key(template):
     return restored
-  impl = (jax.random.key_impl(template) if isinstance(template, jax.Array)
-          else getattr(template.dtype, '_impl', None))  # ShapeDtypeStruct template
+  impl = (jax.random.key_impl(template) if isinstance(template, jax.Array) else getattr(
+      template.dtype, "_impl", None))  # ShapeDtypeStruct template
   return jax.random.wrap_key_data(restored, impl=impl)
 
 
 def _match_commitment(restored: jax.Array, template: Any) -> jax.Array:
   """Orbax returns device-committed arrays; a fresh ``init`` state is uncommitted, and jit caches the
   two separately (a resumed run would compile twice). Uncommit where the template is uncommitted."""
-  committed = (getattr(template, 'committed', False) if isinstance(template, jax.Array)
-               else getattr(template, 'sharding', None) is not None)
+  committed = (getattr(template, "committed", False) if isinstance(template, jax.Array) else
+               getattr(template, "sharding", None) is not None)
   return restored if committed else jnp.asarray(np.asarray(restored))
 
 
 def _one_line(error: BaseException, limit: int = 160) -> str:
   """``Type: first line of the message``, at most ``limit`` characters."""
   lines = str(error).strip().splitlines()
-  text = f"{type(error).__name__}: {lines[0] if lines else ''}".rstrip(': ')
-  return text if len(text) <= limit else text[:limit - 3] + '...'
+  text = f"{type(error).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+  return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 @contextlib.contextmanager
 def _quiet_absl() -> Iterator[None]:
   """Silences absl's log lines (Orbax logs every metadata file it cannot parse) while we try steps
   and report failures ourselves, one line each."""
-  logger = logging.getLogger('absl')
+  logger = logging.getLogger("absl")
   level = logger.level
   logger.setLevel(logging.CRITICAL)
   try:
@@ -277,7 +284,7 @@ def _drops_closed_loop(hook: Callable[[Any], None]) -> Callable[[Any], None]:
 
   def drop(unraisable) -> None:
     error = unraisable.exc_value
-    if not (isinstance(error, RuntimeError) and str(error) == 'Event loop is closed'):
+    if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
       hook(unraisable)
 
   drop.drops_closed_loop = True
@@ -291,7 +298,7 @@ def _quiet_failed_writes() -> Iterator[None]:
   closed`` with a traceback, during the save or just after it. Those reports (only those) are
   dropped during a save, and for the rest of the process after one that failed."""
   previous = sys.unraisablehook
-  if not getattr(previous, 'drops_closed_loop', False):
+  if not getattr(previous, "drops_closed_loop", False):
     sys.unraisablehook = _drops_closed_loop(previous)
   yield  # on an exception: the filter stays, for the stragglers
   sys.unraisablehook = previous
@@ -318,9 +325,9 @@ def restore_latest(directory: str | os.PathLike, template_state: Any,
   Raises:
     CheckpointError: checkpoint steps exist but none of them restores.
   """
-  return _restore_newest(directory, step,
-                         lambda manager, candidate: restore(manager, candidate, template_state,
-                                                            fields))
+  return _restore_newest(
+      directory, step,
+      lambda manager, candidate: restore(manager, candidate, template_state, fields))
 
 
 def restore_latest_flat(directory: str | os.PathLike, fields: Sequence[str],
@@ -331,9 +338,9 @@ def restore_latest_flat(directory: str | os.PathLike, fields: Sequence[str],
                          lambda manager, candidate: restore_flat(manager, candidate, fields))
 
 
-def _restore_newest(directory: str | os.PathLike, step: int | None,
-                    restore_step: Callable[[ocp.CheckpointManager, int], Restored]
-                    ) -> Restored | None:
+def _restore_newest(
+    directory: str | os.PathLike, step: int | None,
+    restore_step: Callable[[ocp.CheckpointManager, int], Restored]) -> Restored | None:
   """``restore_step`` on the newest step that restores (or on ``step`` alone); see
   :func:`restore_latest`."""
   if not os.path.isdir(directory):
@@ -354,8 +361,9 @@ def _restore_newest(directory: str | os.PathLike, step: int | None,
         except Exception as e:  # noqa: BLE001 - whatever the cause, this step is unusable
           first_error = first_error or _one_line(e)
           if i + 1 < len(steps):  # when none restores, the CheckpointError alone says it all
-            print(f"warning: checkpoint step {candidate} in '{directory}' does not restore "
-                  f"({_one_line(e)}); trying step {steps[i + 1]}", file=sys.stderr, flush=True)
+            print(
+                f"warning: checkpoint step {candidate} in '{directory}' does not restore "
+                f"({_one_line(e)}); trying step {steps[i + 1]}", file=sys.stderr, flush=True)
     finally:
       manager.close()
   if steps:

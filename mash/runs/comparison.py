@@ -181,8 +181,9 @@ def check_continued(plan: Plan, algo: str, lr: float, config_file: Path, given: 
   new seeds on another config than its runs' (``given``: the user named one of them)."""
   if not given:
     return
-  asked = experiment.to_dict(experiment.make_config(
-      plan.task, algo, plan.preset, 1, "none", [*plan.overrides, f"train.learning_rate={lr:g}"]))
+  asked = experiment.to_dict(
+      experiment.make_config(plan.task, algo, plan.preset, 1, "none",
+                             [*plan.overrides, f"train.learning_rate={lr:g}"]))
   diff = _first_difference(_without_seed(json.loads(config_file.read_text())),
                            _without_seed(json.loads(json.dumps(asked))))
   if diff:
@@ -203,8 +204,10 @@ def training_command(plan: Plan, algo: str, lr: float, run: Path, seeds: list[in
     if base is not None:
       command += ["--config", str(base), "--out", str(run), "--set", f"train.seed={seeds[0]}"]
     else:
-      command += ["--algo", algo, "--preset", plan.preset, "--out", str(run),
-                  "--set", f"train.seed={seeds[0]}", "--set", f"train.learning_rate={lr:g}"]
+      command += [
+          "--algo", algo, "--preset", plan.preset, "--out",
+          str(run), "--set", f"train.seed={seeds[0]}", "--set", f"train.learning_rate={lr:g}"
+      ]
       command += [x for o in plan.overrides for x in ("--set", o)]
     command += ["--seeds", str(len(seeds))] if len(seeds) > 1 else []
   return command + ([] if plan.show_progress else ["--no-progress"])
@@ -217,8 +220,10 @@ def train_run(plan: Plan, algo: str, lr: float, run: Path, seeds: list[int],
   which = f"seed {seeds[0]}" + (f"-{seeds[-1]}" if len(seeds) > 1 else "")
   label = f"[{algo} lr {lr:g} {which}]"
   state = seed_state(run, num_iterations)
-  what = {"done": "trained; reusing it", "resume": "resuming", "new": "training",
-          "restart": "stopped early with no checkpoint here; training it again"}[state]
+  what = {
+      "done": "trained; reusing it", "resume": "resuming", "new": "training",
+      "restart": "stopped early with no checkpoint here; training it again"
+  }[state]
   print(f"{label} {what}", flush=True)
   if state == "restart":
     print(f"{label} its records moved to {set_aside(run)}", flush=True)
@@ -231,8 +236,8 @@ def train_run(plan: Plan, algo: str, lr: float, run: Path, seeds: list[int],
   # Right after training, while the checkpoint is on this machine: checkpoints are not kept in
   # git, so a later session or a clone may hold only the records.
   metrics_file = run / "eval" / "metrics.json"
-  fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text())
-           .get("eval_config", {}).get("num_episodes") == plan.eval_config.num_episodes)
+  fresh = (metrics_file.is_file() and json.loads(metrics_file.read_text()).get(
+      "eval_config", {}).get("num_episodes") == plan.eval_config.num_episodes)
   if not fresh:
     print(f"{label} evaluating on {plan.eval_config.num_episodes} episodes", flush=True)
     reports.evaluate_run(str(run), plan.eval_config)
@@ -281,16 +286,16 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
     picked = trajectories["seed"] == i
     traj = {k: trajectories[k][picked] for k in trajectories.files if k != "dt"}
     alone = reports.summarize([metrics["per_seed"][i]], traj, metrics["eval_config"],
-                              metrics["iteration"], reports.learning_curve(
-                                  policy_lib.read_progress(d, per_seed=True), 0))
+                              metrics["iteration"],
+                              reports.learning_curve(policy_lib.read_progress(d, per_seed=True), 0))
     (d / "eval" / "metrics.json").write_text(json.dumps(alone, indent=2))
     compare_lib.save_hip_trace(d / "eval" / "hip_trace.npz", {**traj, "dt": trajectories["dt"]})
     reports.plot_hip_pitch(traj, float(trajectories["dt"]), d / "eval" / "hip_pitch.png",
                            json.loads(config)["algo"])
     keep_policy(group, d, seed=i)
     # Last: until it is there, the seed reads as stopped early (seed_state).
-    (d / "summary.json").write_text(json.dumps(
-        {**summary, "group": group.name, "group_index": i}, indent=2))
+    (d / "summary.json").write_text(
+        json.dumps({**summary, "group": group.name, "group_index": i}, indent=2))
     records.compact_tree(d, records.Tally(), records.Tally())
     dirs.append(d)
   return dirs
@@ -336,8 +341,9 @@ def train_block(plan: Plan, algo: str, lr: float, block: list[int]) -> None:
       continue
     for s in group:
       if (parent / f"seed{s}" / "config.json").is_file():
-        print(f"[{algo} lr {lr:g} seed {s}] its records moved to "
-              f"{set_aside(parent / f'seed{s}')}", flush=True)
+        print(
+            f"[{algo} lr {lr:g} seed {s}] its records moved to "
+            f"{set_aside(parent / f'seed{s}')}", flush=True)
     split_group(train_run(plan, algo, lr, group_dir(parent, group), group, n_it), group)
   for s in block:
     train_seed(plan, algo, lr, s)
@@ -346,14 +352,18 @@ def train_block(plan: Plan, algo: str, lr: float, block: list[int]) -> None:
 def search(plan: Plan) -> dict[str, float]:
   """The same small search for both methods: seed 0 at each rate, the same rule picks
   (:func:`pick_learning_rates`); writes ``tuning.json``."""
-  finals = {algo: {lr: final_reward(train_seed(plan, algo, lr, 0)) for lr in plan.learning_rates}
-            for algo in ("mash", "ppo")}
+  finals = {
+      algo: {lr: final_reward(train_seed(plan, algo, lr, 0)) for lr in plan.learning_rates}
+      for algo in ("mash", "ppo")
+  }
   picked = pick_learning_rates(finals)
-  (plan.out / "tuning.json").write_text(json.dumps({
-      "learning_rates": list(plan.learning_rates), "seed": 0, "picked": picked,
-      "final": {a: {f"{lr:g}": r for lr, r in f.items()} for a, f in finals.items()},
-      "rule": "highest mean paper-weight episode reward over the last 10 % of iterations"},
-      indent=2))
+  (plan.out / "tuning.json").write_text(
+      json.dumps(
+          {
+              "learning_rates": list(plan.learning_rates), "seed": 0, "picked": picked, "final": {
+                  a: {f"{lr:g}": r for lr, r in f.items()} for a, f in finals.items()
+              }, "rule": "highest mean paper-weight episode reward over the last 10 % of iterations"
+          }, indent=2))
   print(f"learning rates picked by the search: MASH {picked['mash']:g}, PPO {picked['ppo']:g}",
         flush=True)
   return picked

@@ -16,12 +16,11 @@ import typing
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from mash.rl import config as train_config
-from mash.sim import env as env_lib
-from mash.runs import loggers
-from mash.sim import tasks
-from mash.sim import env_config
 from mash.errors import InputError
+from mash.rl import config as train_config
+from mash.runs import loggers
+from mash.sim import env as env_lib
+from mash.sim import env_config, tasks
 
 ALGOS = ("mash", "ppo")
 MAX_SEEDS = 1024  # seeds of one run train side by side (vmapped) on one device
@@ -81,8 +80,7 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
   if preset == "smoke":
     return dataclasses.replace(base, num_iterations=10, unroll_length=16, num_envs=64,
                                iterations_per_call=5, num_epochs=2, num_minibatches=2,
-                               actor_hidden=(64, 64), critic_hidden=(64, 64),
-                               learning_rate=1e-3)
+                               actor_hidden=(64, 64), critic_hidden=(64, 64), learning_rate=1e-3)
   if preset == "cpu":
     # 1250 iterations of 400 envs (12 M steps) under two Newton iterations (_preset_env): 1.9-2.1 s
     # per iteration on 2 Intel Xeon cores (family 6 model 167) as two local processes, 39-43 min
@@ -93,9 +91,9 @@ def _preset_train(preset: str) -> train_config.TrainConfig:
     # second solver iteration within the 45 minutes.
     return dataclasses.replace(base, num_iterations=1250, unroll_length=24, num_envs=400,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
-                               actor_hidden=(256, 128, 64), critic_hidden=(256, 128, 64),
-                               learning_rate=1e-3, learning_rate_schedule="linear",
-                               init_log_std=0.0)
+                               actor_hidden=(256, 128, 64), critic_hidden=(256, 128,
+                                                                           64), learning_rate=1e-3,
+                               learning_rate_schedule="linear", init_log_std=0.0)
   # gpu: the paper's 3000 iterations of 48 steps, 4096 envs, with the action std starting at 1
   # under the penalty curriculum of _preset_env (measured on an H100, bipedal MASH: it walks at
   # 0.18-0.19 m/s with 12-16 % falls by 167-263 M steps, where two runs of the paper's reward from
@@ -121,15 +119,14 @@ def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
   spec = tasks.get(task)  # its own command ranges and reward scales, where it has any
   base = env_config.EnvConfig()
   cfg = env_config.EnvConfig(
-      task=task, partition=partition,
-      commands=dataclasses.replace(base.commands, **spec.commands),
+      task=task, partition=partition, commands=dataclasses.replace(base.commands, **spec.commands),
       reward_scales=dataclasses.replace(base.reward_scales, **spec.reward_scales))
   if preset == "smoke":
     cfg = dataclasses.replace(cfg, episode_length=200)
   ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_CURRICULUM_STEPS}.get(preset, 0)
   if ramp:
-    cfg = dataclasses.replace(cfg, reward_params=dataclasses.replace(
-        cfg.reward_params, penalty_ramp_steps=ramp))
+    cfg = dataclasses.replace(
+        cfg, reward_params=dataclasses.replace(cfg.reward_params, penalty_ramp_steps=ramp))
   if preset == "cpu":
     # The stride reference: the legs' reference strides at the commanded velocity, so the
     # joint-position term rewards walking at the command (one run, 2026-12-01: 0.355 m/s at a
@@ -139,17 +136,19 @@ def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
     # elsewhere): at 0.25 the policy drifted at 0.14 m/s when told to step in place and topped out
     # at 0.5 m/s when told 0.8 (grid mean vx error 0.134 m/s); at 0.1, 0.066, with 7.0 % falls
     # against 8.2 % (one run each, 2026-12-01; benchmarks/results/..._stride_sigma01/).
-    cfg = dataclasses.replace(cfg, stride_reference=True, randomization=dataclasses.replace(
-        cfg.randomization, friction_initial=CPU_FRICTION_INITIAL,
-        friction_ramp_steps=CPU_CURRICULUM_STEPS), reward_params=dataclasses.replace(
-            cfg.reward_params, tracking_sigma=CPU_TRACKING_SIGMA))
+    cfg = dataclasses.replace(
+        cfg, stride_reference=True,
+        randomization=dataclasses.replace(cfg.randomization, friction_initial=CPU_FRICTION_INITIAL,
+                                          friction_ramp_steps=CPU_CURRICULUM_STEPS),
+        reward_params=dataclasses.replace(cfg.reward_params, tracking_sigma=CPU_TRACKING_SIGMA))
     # Two Newton iterations: at one, the contact forces on slippery floors are far from the
     # converged ones (the same policy fell on 56 % of floors below friction 0.2 at 1 iteration,
     # 33 % at 3-4), and the preset's policies fell on 57-83 % of those floors, 7-9 % of all
     # episodes. Trained at 2 (line search 2: as fast as 1 at 2 iterations), three seeds fell
     # on 20-26 % of them and survived 97.5-98.2 % of 512 episodes (2026-12-05).
-    cfg = dataclasses.replace(cfg, physics=dataclasses.replace(
-        cfg.physics, iterations=CPU_SOLVER_ITERATIONS, ls_iterations=CPU_LS_ITERATIONS))
+    cfg = dataclasses.replace(
+        cfg, physics=dataclasses.replace(cfg.physics, iterations=CPU_SOLVER_ITERATIONS,
+                                         ls_iterations=CPU_LS_ITERATIONS))
   return cfg
 
 
@@ -246,7 +245,7 @@ def check(cfg: ExperimentConfig) -> None:
     raise ConfigError('wandb=true needs Weights & Biases, which is not installed here: pip '
                       'install -e ".[wandb]" (or leave wandb at false)')
   if not cfg.wandb_project.strip() or len(cfg.wandb_project) > 128 or any(
-      c in cfg.wandb_project for c in '/\\#?%:\n'):
+      c in cfg.wandb_project for c in "/\\#?%:\n"):
     raise ConfigError(f"wandb_project must be a W&B project name (1 to 128 characters, none of "
                       f"/ \\ # ? % :), got {cfg.wandb_project!r}")
   try:
@@ -348,8 +347,8 @@ def _coerce_field(text: str, obj: Any, name: str, path: str) -> Any:
       return None
     if current is None:
       kind = next(k for k in kinds if k is not type(None))
-      current = {tuple: (0.0,), float: 0.0, int: 0, bool: False}.get(
-          typing.get_origin(kind) or kind, "")
+      current = {tuple: (0.0,), float: 0.0, int: 0,
+                 bool: False}.get(typing.get_origin(kind) or kind, "")
   return _coerce(text, current, path)
 
 

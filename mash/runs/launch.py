@@ -30,12 +30,13 @@ from mash import cli
 from mash.cli import UserError
 from mash.rl import distributed
 from mash.rl.config import derived
-from mash.runs import experiment
-from mash.runs import loop
+from mash.runs import experiment, loop
 from mash.sim import geometry, robots
 
-DISTRIBUTED_ENV = {"coordinator": "MASH_COORDINATOR", "num_processes": "MASH_NUM_PROCESSES",
-                   "process_id": "MASH_PROCESS_ID"}
+DISTRIBUTED_ENV = {
+    "coordinator": "MASH_COORDINATOR", "num_processes": "MASH_NUM_PROCESSES",
+    "process_id": "MASH_PROCESS_ID"
+}
 MAX_LOCAL_PROCESSES = 64
 
 
@@ -50,9 +51,10 @@ def add_distributed_args(parser: argparse.ArgumentParser) -> None:
                  help="processes in the run (env MASH_NUM_PROCESSES; default 1)")
   g.add_argument("--process-id", default=None, metavar="I",
                  help="this process's index, 0 .. N-1; 0 writes the run (env MASH_PROCESS_ID)")
-  g.add_argument("--local-processes", default="auto", metavar="N",
-                 help="train as N processes on this host joined on 127.0.0.1 (default auto: 2 on "
-                      "a CPU with 2+ cores for one seed above the smoke preset, else 1)")
+  g.add_argument(
+      "--local-processes", default="auto", metavar="N",
+      help="train as N processes on this host joined on 127.0.0.1 (default auto: 2 on "
+      "a CPU with 2+ cores for one seed above the smoke preset, else 1)")
 
 
 def _int_option(value: str | None, flag: str, env: str) -> int | None:
@@ -105,8 +107,8 @@ def join_processes(args: argparse.Namespace) -> bool:
 
 def joined_by_hand(args: argparse.Namespace) -> bool:
   """Whether the multi-host flags (or their ``MASH_*`` variables) join processes by hand."""
-  return bool(args.num_processes or os.environ.get(DISTRIBUTED_ENV["num_processes"])
-              or args.coordinator or args.process_id is not None)
+  return bool(args.num_processes or os.environ.get(DISTRIBUTED_ENV["num_processes"]) or
+              args.coordinator or args.process_id is not None)
 
 
 def local_processes_wanted(args: argparse.Namespace, preset: str, seeds: int) -> int:
@@ -165,8 +167,10 @@ def run_local_processes(module: str, argv: list[str], n: int) -> int:
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
   env = dict(os.environ)
-  env.update({DISTRIBUTED_ENV["coordinator"]: f"127.0.0.1:{port}",
-              DISTRIBUTED_ENV["num_processes"]: str(n), "MASH_LOCAL_PROCESSES": "1"})
+  env.update({
+      DISTRIBUTED_ENV["coordinator"]: f"127.0.0.1:{port}", DISTRIBUTED_ENV["num_processes"]: str(n),
+      "MASH_LOCAL_PROCESSES": "1"
+  })
   logs, procs = [], []
   for i in range(n):
     env[DISTRIBUTED_ENV["process_id"]] = str(i)
@@ -175,11 +179,11 @@ def run_local_processes(module: str, argv: list[str], n: int) -> int:
     with warnings.catch_warnings():
       # The child execs a fresh interpreter at once (after one prctl call), so the fork of this
       # process, whose JAX has threads, cannot deadlock it, as Python's warning fears.
-      warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called",
-                              category=RuntimeWarning)
-      procs.append(subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env),
-                                    stdout=log, stderr=subprocess.STDOUT if log else None,
-                                    start_new_session=True, preexec_fn=_die_with_parent))
+      warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+      procs.append(
+          subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env), stdout=log,
+                           stderr=subprocess.STDOUT if log else None, start_new_session=True,
+                           preexec_fn=_die_with_parent))
 
   def forward(signum, frame):
     for p in procs:
@@ -258,13 +262,15 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
   p.add_argument("--out", default=None,
                  help="run directory (default: runs/<task>_<algo>_<preset>_<time>)")
   p.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR")
-  p.add_argument("--config", default=None, metavar="FILE.json",
-                 help="train a new run on this config (e.g. another run's config.json) instead "
-                      "of a preset; --seeds and --set apply on top")
+  p.add_argument(
+      "--config", default=None, metavar="FILE.json",
+      help="train a new run on this config (e.g. another run's config.json) instead "
+      "of a preset; --seeds and --set apply on top")
   p.add_argument("--ablation", default="none", help="one of mash.runs.experiment.ABLATIONS")
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.toml",
-                 help=f"a shipped robot ({', '.join(robots.names())}) or a robot file (default: "
-                      "booster_t1; the same as --set env.robot=...)")
+  p.add_argument(
+      "--robot", default=None, metavar="NAME|FILE.toml",
+      help=f"a shipped robot ({', '.join(robots.names())}) or a robot file (default: "
+      "booster_t1; the same as --set env.robot=...)")
   p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
                  help="override a config field, e.g. train.learning_rate=1e-3 (repeatable)")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -273,10 +279,15 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
 
 def _check_resume_flags(args: argparse.Namespace) -> None:
   """``--resume`` continues a run with its own config: no flag that would change it."""
-  given = [name for name, value, default in (
-      ("--algo", args.algo, "mash"), ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
-      ("--ablation", args.ablation, "none"), ("--set", args.set, []), ("--robot", args.robot, None),
-      ("--out", args.out, None), ("--config", args.config, None)) if value != default]
+  given = [
+      name for name, value, default in (("--algo", args.algo, "mash"),
+                                        ("--preset", args.preset, None), ("--seeds", args.seeds, 1),
+                                        ("--ablation", args.ablation,
+                                         "none"), ("--set", args.set, []), ("--robot", args.robot,
+                                                                            None),
+                                        ("--out", args.out, None), ("--config", args.config, None))
+      if value != default
+  ]
   if given and not (given == ["--out"] and str(args.out) == str(args.resume)):
     raise UserError(f"--resume continues a run with its own config; {', '.join(given)} "
                     "cannot be combined with it")
@@ -286,9 +297,12 @@ def _new_config(task: str, args: argparse.Namespace) -> experiment.ExperimentCon
   """A new run's config: the preset's (``--preset``, else the backend's), or the ``--config``
   file's, then ``--set`` on top."""
   if args.config is not None:
-    given = [name for name, value, default in (
-        ("--algo", args.algo, "mash"), ("--preset", args.preset, None),
-        ("--ablation", args.ablation, "none"), ("--robot", args.robot, None)) if value != default]
+    given = [
+        name for name, value, default in (("--algo", args.algo,
+                                           "mash"), ("--preset", args.preset,
+                                                     None), ("--ablation", args.ablation, "none"),
+                                          ("--robot", args.robot, None)) if value != default
+    ]
     if given:
       raise UserError(f"--config gives the whole config; {', '.join(given)} cannot be combined "
                       "with it (use --set on top)")
@@ -345,15 +359,17 @@ def train_main(task: str, args: argparse.Namespace, argv: list[str] | None) -> N
         _check_out(args)
       n = _processes_for(args, cfg)
       if n > 1:
-        sys.exit(run_local_processes(f"experiments.{task}",
-                                     sys.argv[1:] if argv is None else list(argv), n))
+        sys.exit(
+            run_local_processes(f"experiments.{task}", sys.argv[1:] if argv is None else list(argv),
+                                n))
     primary = join_processes(args)  # before any other JAX work
     say = print if primary else (lambda *a, **k: None)
     if args.resume:
       cfg = cfg or loop.load_config(args.resume)
       if cfg.task != task:
         raise UserError(f"--resume {args.resume} is a '{cfg.task}' run, not '{task}'")
-      say(f"resuming {args.resume}: task {cfg.task}, algo {cfg.algo}, preset {cfg.preset}"
+      say(
+          f"resuming {args.resume}: task {cfg.task}, algo {cfg.algo}, preset {cfg.preset}"
           f"{devices_note()}", flush=True)
       summary = loop.train(cfg, args.resume, resume=True, show_progress=not args.no_progress)
       out = args.resume
@@ -362,11 +378,13 @@ def train_main(task: str, args: argparse.Namespace, argv: list[str] | None) -> N
       chosen = "given" if args.preset else f"chosen from the backend '{cli.default_preset()[1]}'"
       stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(shared_time()))
       out = args.out or f"runs/{task}_{cfg.algo}_{cfg.preset}_{stamp}"
-      say(f"preset: {cfg.preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
+      say(
+          f"preset: {cfg.preset} ({chosen}); task {task}, algo {cfg.algo}, seeds {cfg.seeds}, "
           f"{cfg.train.num_envs} envs x {cfg.train.unroll_length} steps x "
           f"{cfg.train.num_iterations} iterations -> {out}{devices_note()}", flush=True)
       if cfg.env.stride_reference:
-        say(f"stride reference on {cfg.env.robot}: {geometry.stride_plan(robots.load(cfg.env.robot))}",
+        say(
+            f"stride reference on {cfg.env.robot}: {geometry.stride_plan(robots.load(cfg.env.robot))}",
             flush=True)
       summary = loop.train(cfg, out, show_progress=not args.no_progress)
     _say_outcome(say, task, out, summary)
@@ -379,7 +397,8 @@ def _say_outcome(say, task: str, out: str, summary: dict) -> None:
   state = "interrupted at" if summary["interrupted"] else "finished"
   reward = summary["final_episode_reward"]
   reward = "n/a" if reward is None else f"{reward:.3f}"
-  say(f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
+  say(
+      f"{state} iteration {summary['iterations']}: {summary['env_steps']:,} env steps in "
       f"{summary['wall_s']:.0f} s, final episode reward {reward}; run in {out}", flush=True)
   if summary["interrupted"]:
     again = " (on every process, with the same flags)" if summary.get("processes", 1) > 1 else ""

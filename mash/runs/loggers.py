@@ -23,6 +23,7 @@ WANDB_ID_FILE = "wandb_id"
 
 
 class Logger(Protocol):
+
   def log(self, rows: Sequence[Mapping[str, float]]) -> None:
     """Logs rows of ``progress.csv`` (each with its ``iteration``)."""
 
@@ -58,8 +59,8 @@ class WandbLogger:
     import wandb
     id_file = out / WANDB_ID_FILE
     run_id = id_file.read_text().strip() if id_file.is_file() else secrets.token_hex(4)
-    self.run = wandb.init(project=project, name=out.name, id=run_id, resume="allow",
-                          dir=str(out), config=dict(config))
+    self.run = wandb.init(project=project, name=out.name, id=run_id, resume="allow", dir=str(out),
+                          config=dict(config))
     id_file.write_text(run_id + "\n")
 
   def log(self, rows: Sequence[Mapping[str, float]]) -> None:

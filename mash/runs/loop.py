@@ -47,14 +47,13 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from mash import errors
-from mash.runs import checkpoint
-from mash.rl import distributed
-from mash.runs import experiment
-from mash.runs import loggers
-from mash.rl import trainer as trainer_lib
-from mash.rl.config import derived as derived_sizes
+
 # Shared with deployment code, which loads policies without this module (mash.deploy.policy).
 from mash.deploy.policy import RunError, read_progress  # noqa: F401
+from mash.rl import distributed
+from mash.rl import trainer as trainer_lib
+from mash.rl.config import derived as derived_sizes
+from mash.runs import checkpoint, experiment, loggers
 
 BASE_COLUMNS = ("iteration", "env_steps", "wall_s", "episode_reward", "episode_length")
 
@@ -105,8 +104,7 @@ def build_trainer(cfg: experiment.ExperimentConfig) -> trainer_lib.Trainer:
   (:func:`mash.rl.distributed.global_mesh`) when :func:`uses_mesh`, else on one device,
   seed-vmapped when ``cfg.seeds > 1``."""
   mesh = distributed.global_mesh() if uses_mesh(cfg) else None
-  return trainer_lib.make_trainer(cfg.train, experiment.make_env(cfg), seeds=cfg.seeds,
-                                  mesh=mesh)
+  return trainer_lib.make_trainer(cfg.train, experiment.make_env(cfg), seeds=cfg.seeds, mesh=mesh)
 
 
 def with_fresh_episodes(trainer: trainer_lib.Trainer, state, iteration: int):
@@ -128,8 +126,8 @@ def restore_run(run_dir: str | os.PathLike, trainer: trainer_lib.Trainer,
   newer ones are torn), or the one saved at ``iteration``; RunError (one line) when there is
   none."""
   try:
-    restored = checkpoint.restore_latest(Path(run_dir) / "checkpoints", trainer.state_shapes(),
-                                         fields, step=iteration)
+    restored = checkpoint.restore_latest(
+        Path(run_dir) / "checkpoints", trainer.state_shapes(), fields, step=iteration)
   except checkpoint.CheckpointError as e:
     raise RunError(str(e)) from None
   if restored is None:
@@ -155,8 +153,9 @@ class StopOnSignals:
       raise KeyboardInterrupt
     self.signum = int(signum)
     if self.verbose:
-      print(f"\nsignal {signal.Signals(signum).name}: finishing the current call and saving a "
-            "checkpoint (send again to abort)", flush=True)
+      print(
+          f"\nsignal {signal.Signals(signum).name}: finishing the current call and saving a "
+          "checkpoint (send again to abort)", flush=True)
 
   def __enter__(self) -> "StopOnSignals":
     self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -180,8 +179,8 @@ class StopOnSignals:
 def _rows(metrics: dict[str, np.ndarray], first_iteration: int, env_steps_per_iteration: int,
           wall_s: float, seeds: int) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
   """Turns one call's metrics into progress rows (mean over seeds) and per-seed rows."""
-  keys = (["episode_reward", "episode_length", "paper_episode_reward"]
-          + sorted(k for k in metrics if k.startswith("reward/")))
+  keys = (["episode_reward", "episode_length", "paper_episode_reward"] +
+          sorted(k for k in metrics if k.startswith("reward/")))
   extra = sorted(k for k in metrics if k not in keys)
   per_seed = {k: np.asarray(metrics[k]).reshape(seeds, -1) for k in keys + extra}
   n = per_seed["episode_reward"].shape[1]
@@ -305,7 +304,7 @@ def _writing(what: str, out: Path, kept_step: int | None) -> Iterator[None]:
     if e.errno not in errors.STORAGE_ERRNOS:
       raise
     raise errors.StorageError(f"cannot write {what}: {os.strerror(e.errno)}; "
-                                  f"{_kept(out, kept_step)}") from None
+                              f"{_kept(out, kept_step)}") from None
 
 
 # Calls after the first (which compiles) timed before the run says how long it will take.
@@ -454,8 +453,9 @@ class Checkpoints(Hook):
       new = checkpoint.save(self.manager, call.iteration, call.state, self.cfg.train,
                             fields=self.fields)
     if not new and distributed.is_primary():
-      print(f"warning: checkpoint step {call.iteration} was not saved (Orbax found it already in "
-            f"'{self.storage.out / 'checkpoints'}')", file=sys.stderr, flush=True)
+      print(
+          f"warning: checkpoint step {call.iteration} was not saved (Orbax found it already in "
+          f"'{self.storage.out / 'checkpoints'}')", file=sys.stderr, flush=True)
     self.storage.saved = call.iteration
 
   def close(self) -> None:
@@ -477,9 +477,9 @@ class ProgressBar(Hook):
     if call.index:
       self.timed.append(call.seconds)
     if len(self.timed) == ETA_CALLS and not call.last:
-      self.bar.write(_expected_duration(self.timed, self.cfg.train.iterations_per_call,
-                                        self.cfg.train.num_iterations - call.iteration),
-                     file=sys.stderr)
+      self.bar.write(
+          _expected_duration(self.timed, self.cfg.train.iterations_per_call,
+                             self.cfg.train.num_iterations - call.iteration), file=sys.stderr)
     self.bar.set_postfix(reward=f"{call.rows[-1]['episode_reward']:.3f}",
                          steps_per_s=f"{self.env_steps_per_call / call.seconds:,.0f}")
     self.bar.update(len(call.rows))
@@ -489,8 +489,8 @@ class ProgressBar(Hook):
 
 
 def _loop(trainer: trainer_lib.Trainer, state, iteration: int, calls: int,
-          env_steps_per_iteration: int, wall0: float, hooks: list[Hook], stop: StopOnSignals
-          ) -> "_Ended":
+          env_steps_per_iteration: int, wall0: float, hooks: list[Hook],
+          stop: StopOnSignals) -> "_Ended":
   """Runs ``calls`` jitted calls from ``iteration``, handing each to the hooks; ends early after
   the call during which a stop signal came (:class:`_Ended`)."""
   seconds, stop_signal, last_reward = [], None, None
@@ -504,8 +504,8 @@ def _loop(trainer: trainer_lib.Trainer, state, iteration: int, calls: int,
                               time.perf_counter() - wall0, trainer.seeds)
       iteration, last_reward = rows[-1]["iteration"], rows[-1]["episode_reward"]
       stop_signal = stop.requested()
-      call = Call(index, iteration, rows, seed_rows, state, seconds[-1],
-                  last=index == calls - 1 or stop_signal is not None)
+      call = Call(index, iteration, rows, seed_rows, state, seconds[-1], last=index == calls - 1 or
+                  stop_signal is not None)
       for hook in hooks:
         hook.after_call(call)
       if stop_signal is not None:
@@ -539,10 +539,10 @@ def _start(trainer: trainer_lib.Trainer, cfg: experiment.ExperimentConfig, stora
   return state, iteration
 
 
-def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
-          show_progress: bool = True, max_calls: int | None = None,
-          trainer: trainer_lib.Trainer | None = None,
-          hooks: tuple[Hook, ...] = ()) -> dict[str, Any]:
+def train(
+    cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: bool = False,
+    show_progress: bool = True, max_calls: int | None = None,
+    trainer: trainer_lib.Trainer | None = None, hooks: tuple[Hook, ...] = ()) -> dict[str, Any]:
   """Trains ``cfg`` into ``out_dir`` (or continues the run there when ``resume``).
 
   With several devices (``jax.device_count() > 1``) and ``cfg.seeds == 1`` the env batch is split
@@ -579,16 +579,16 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   cfg, devices = _accept(cfg, out, resume, trainer)
   if trainer is None:
     if devices == 1 and jax.device_count() > 1 and primary:
-      print(f"warning: --seeds {cfg.seeds} trains on one of the {jax.device_count()} devices "
-            "(only a one-seed run splits its env batch over devices)", file=sys.stderr,
-            flush=True)
+      print(
+          f"warning: --seeds {cfg.seeds} trains on one of the {jax.device_count()} devices "
+          "(only a one-seed run splits its env batch over devices)", file=sys.stderr, flush=True)
     trainer = build_trainer(cfg)
   derived = derived_sizes(cfg.train, devices)
 
   storage = _Storage(out)
   state, start_iteration = _start(trainer, cfg, storage, resume)
-  previous = json.loads((out / "summary.json").read_text()) if (
-      resume and (out / "summary.json").exists()) else {}
+  previous = json.loads(
+      (out / "summary.json").read_text()) if (resume and (out / "summary.json").exists()) else {}
   wall0 = time.perf_counter() - _wall_at(out, start_iteration if resume else 0, previous)
   calls = -(-(cfg.train.num_iterations - start_iteration) // cfg.train.iterations_per_call)
   calls = calls if max_calls is None else min(calls, max_calls)
@@ -596,12 +596,15 @@ def train(cfg: experiment.ExperimentConfig, out_dir: str | os.PathLike, resume: 
   run_hooks: list[Hook] = []
   try:
     if primary:
-      run_hooks += [ProgressLogs(storage, start_iteration if resume else None, cfg.seeds),
-                    ScalarLoggers(storage, cfg)]
-    run_hooks += [Checkpoints(storage, cfg, None if cfg.checkpoint_env_state
-                              else checkpoint.LEARNING_FIELDS),
-                  ProgressBar(cfg, start_iteration, derived.env_steps_per_call,
-                              show_progress and primary), *hooks]
+      run_hooks += [
+          ProgressLogs(storage, start_iteration if resume else None, cfg.seeds),
+          ScalarLoggers(storage, cfg)
+      ]
+    run_hooks += [
+        Checkpoints(storage, cfg, None if cfg.checkpoint_env_state else checkpoint.LEARNING_FIELDS),
+        ProgressBar(cfg, start_iteration, derived.env_steps_per_call, show_progress and primary),
+        *hooks
+    ]
     ended = _loop(trainer, state, start_iteration, calls, derived.env_steps_per_iteration, wall0,
                   run_hooks, StopOnSignals(verbose=primary))
   finally:  # also on an abort (a second signal): Orbax saves are atomic anyway
@@ -660,16 +663,38 @@ def _summary(cfg: experiment.ExperimentConfig, out: Path, storage: _Storage, end
   seconds = ended.seconds
   steady = float(np.median(seconds[1:])) if len(seconds) > 1 else None
   summary = {
-      "task": cfg.task, "algo": cfg.algo, "preset": cfg.preset, "ablation": cfg.ablation,
-      "seeds": cfg.seeds, "iterations": ended.iteration,
-      "env_steps": ended.iteration * derived.env_steps_per_iteration,
-      "wall_s": time.perf_counter() - wall0,
-      "first_call_s": seconds[0] if seconds else None,
-      "train_env_steps_per_s": (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
-      "final_episode_reward": final_reward,
-      "interrupted": ended.stop_signal is not None,
-      "signal": ended.stop_signal,
-      "backend": jax.default_backend(), "devices": devices, "processes": jax.process_count(),
+      "task":
+          cfg.task,
+      "algo":
+          cfg.algo,
+      "preset":
+          cfg.preset,
+      "ablation":
+          cfg.ablation,
+      "seeds":
+          cfg.seeds,
+      "iterations":
+          ended.iteration,
+      "env_steps":
+          ended.iteration * derived.env_steps_per_iteration,
+      "wall_s":
+          time.perf_counter() - wall0,
+      "first_call_s":
+          seconds[0] if seconds else None,
+      "train_env_steps_per_s":
+          (derived.env_steps_per_call * cfg.seeds / steady) if steady else None,
+      "final_episode_reward":
+          final_reward,
+      "interrupted":
+          ended.stop_signal is not None,
+      "signal":
+          ended.stop_signal,
+      "backend":
+          jax.default_backend(),
+      "devices":
+          devices,
+      "processes":
+          jax.process_count(),
   }
   if primary:
     with storage.writing(f"'{out / 'summary.json'}'"):

@@ -13,7 +13,6 @@ both kept. ``benchmarks/scripts/compact_records.py`` is its command line.
 Do not compact a folder a training run is still writing.
 """
 
-
 import csv
 import gzip
 import io
@@ -165,8 +164,8 @@ def compact_plot(path: Path, tally: Tally) -> None:
         print(f"{path}: kept (has transparent pixels)", flush=True)
         return
       dpi = image.info.get("dpi")
-      palette = image.convert("RGB").quantize(
-          colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+      palette = image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT,
+                                              dither=Image.Dither.NONE)
   except (OSError, ValueError) as e:  # unreadable or truncated
     tally.error(f"'{path}' could not be read as an image: {e}")
     return

@@ -20,14 +20,9 @@ import numpy as np
 from brax.envs import base as brax_base
 from mujoco import mjx
 
-from mash.sim import agents
-from mash.sim import geometry
+from mash.sim import agents, geometry, randomize, rewards, robots, tasks
 from mash.sim import layout as layout_lib
 from mash.sim import model as model_lib
-from mash.sim import randomize
-from mash.sim import rewards
-from mash.sim import robots
-from mash.sim import tasks
 from mash.sim.env_config import EnvConfig, check_config, with_robot_numbers
 
 State = brax_base.State
@@ -93,7 +88,7 @@ class MashEnv(brax_base.Env):
     # This process's first device: MJX's default, jax.devices()[0], belongs to process 0 in a
     # multi-process run, and other processes cannot use arrays placed there.
     self.mjx_model, self._data0 = model_lib.put_physics(self.mj_model, config.physics,
-                                              jax.local_devices()[0])
+                                                        jax.local_devices()[0])
     m = self.mj_model
 
     lay = self.layout
@@ -109,10 +104,11 @@ class MashEnv(brax_base.Env):
     self._root = m.body(spec.root_body).id
     self._feet = np.array([m.body(f).id for f in spec.feet])
     n_sole = len(spec.sole_points[0])
-    self._soles = np.array([[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)]
-                            for side in ("left", "right")])
-    self._floor_pairs = jnp.array([m.pair(f"{side}_sole_{k}_floor").id
-                                   for side in ("left", "right") for k in range(n_sole)])
+    self._soles = np.array(
+        [[m.geom(f"{side}_sole_{k}").id for k in range(n_sole)] for side in ("left", "right")])
+    self._floor_pairs = jnp.array([
+        m.pair(f"{side}_sole_{k}_floor").id for side in ("left", "right") for k in range(n_sole)
+    ])
     self._penalty_geoms = np.array([m.geom(f"{a}_penalty").id for a, _ in spec.penalized_pairs])
     self._home_qpos = jnp.array(m.key("home").qpos)
     self._phase_offset = jnp.array(lay.phase_offset)
@@ -168,9 +164,11 @@ class MashEnv(brax_base.Env):
     c = self.config.commands
     k = jax.random.split(key, 4)
     standing = jax.random.uniform(k[0]) < c.standing_prob
-    vel = jnp.stack([jax.random.uniform(k[1], minval=c.vx[0], maxval=c.vx[1]),
-                     jax.random.uniform(k[2], minval=c.vy[0], maxval=c.vy[1]),
-                     jax.random.uniform(k[3], minval=c.yaw_rate[0], maxval=c.yaw_rate[1])])
+    vel = jnp.stack([
+        jax.random.uniform(k[1], minval=c.vx[0], maxval=c.vx[1]),
+        jax.random.uniform(k[2], minval=c.vy[0], maxval=c.vy[1]),
+        jax.random.uniform(k[3], minval=c.yaw_rate[0], maxval=c.yaw_rate[1])
+    ])
     return jnp.concatenate([standing[None].astype(jnp.float32), jnp.where(standing, 0.0, vel)])
 
   def _sample_push(self, key: jax.Array) -> jax.Array:
@@ -181,7 +179,8 @@ class MashEnv(brax_base.Env):
     kf, kt = jax.random.split(key)
     return jnp.concatenate([
         jax.random.uniform(kf, (2,), minval=r.push_force[0], maxval=r.push_force[1]),
-        jax.random.uniform(kt, (3,), minval=r.push_torque[0], maxval=r.push_torque[1])])
+        jax.random.uniform(kt, (3,), minval=r.push_torque[0], maxval=r.push_torque[1])
+    ])
 
   def limb_phase(self, phase: jax.Array) -> jax.Array:
     """[L] temporal director T_i = sin(2 pi (phase + Delta_i)) as an angle 2 pi (phase + Delta_i)."""
@@ -223,11 +222,15 @@ class MashEnv(brax_base.Env):
     sole_z = data.geom_xpos[self._soles][..., 2] - self.spec.sole_radius  # [2, n_sole]
     feet_height = jnp.min(sole_z, axis=-1)
     return dict(
-        q=q, dq=data.qvel[self._dadr], quat=quat, euler=geometry.quat_to_euler(quat),
+        q=q,
+        dq=data.qvel[self._dadr],
+        quat=quat,
+        euler=geometry.quat_to_euler(quat),
         ang_vel=data.qvel[3:6],  # free-joint angular velocity is already in the body frame
         lin_vel=geometry.quat_rotate_inverse(quat, data.qvel[0:3]),
         gravity=geometry.quat_rotate_inverse(quat, jnp.array([0.0, 0.0, -1.0])),
-        base_height=data.qpos[2] - jnp.min(feet_height), feet_height=feet_height,
+        base_height=data.qpos[2] - jnp.min(feet_height),
+        feet_height=feet_height,
         feet_xy=data.xpos[self._feet][:, :2])
 
   def contacts(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
@@ -239,7 +242,8 @@ class MashEnv(brax_base.Env):
     """
     sole_gap = data.geom_xpos[self._soles][..., 2] - self.spec.sole_radius  # [2, n_sole] (m)
     foot = jnp.any(sole_gap < 1e-3, axis=-1)
-    dist, geom1, force = model_lib.contact_rows(data)  # penalty pairs are condim 1: one row, the normal
+    dist, geom1, force = model_lib.contact_rows(
+        data)  # penalty pairs are condim 1: one row, the normal
     is_pair = geom1[:, None] == self._penalty_geoms[None, :]
     penalty = jnp.sum(jnp.where(is_pair & (dist < 0)[:, None], force[:, None], 0.0), 0)
     return foot.astype(jnp.float32), penalty
@@ -284,7 +288,8 @@ class MashEnv(brax_base.Env):
         "env_steps": env_steps,
         "command": command,
         "phase": jax.random.uniform(k_phase) * (1.0 - command[0]),
-        "last_action": a0, "last_last_action": a0,
+        "last_action": a0,
+        "last_last_action": a0,
         "q_target": self._q_default,
         "last_dq": jnp.zeros((self.n_joints,)),
         "last_torque": jnp.zeros((self.n_joints,)),
@@ -304,14 +309,17 @@ class MashEnv(brax_base.Env):
     contact = jnp.ones((2,))
     obs = self.with_history(self.observe(sensors, info, contact), None)
     info["next_critic_obs"] = obs["critic"]
-    metrics = {f"reward/{k}": jnp.zeros(()) for k in rewards.TERMS
-               if getattr(self.config.reward_scales, k) != 0.0}
+    metrics = {
+        f"reward/{k}": jnp.zeros(())
+        for k in rewards.TERMS
+        if getattr(self.config.reward_scales, k) != 0.0
+    }
     metrics["paper_reward"] = jnp.zeros(())
     zero = jnp.zeros(())
     return State(pipeline_state=data, obs=obs, reward=zero, done=zero, metrics=metrics, info=info)
 
   def observe(self, s: dict[str, jax.Array], info: dict[str, Any],
-               contact: jax.Array) -> dict[str, jax.Array]:
+              contact: jax.Array) -> dict[str, jax.Array]:
     """Agent observations per group ``{group: [n_agents, frame]}`` and the critic observation
     ``[critic size]``, each agent row and the critic laid out as ``layout.actor[group]`` and
     ``layout.critic`` say (one step: :meth:`with_history` stacks the agents' frames)."""
@@ -332,35 +340,42 @@ class MashEnv(brax_base.Env):
       segments = lay.actor[group.name]
       if group.name == layout_lib.BODY:
         acting = np.array([lay.limb_index[l] for l in limbs])
-        obs[group.name] = _concat(segments, dict(
-            q=q_rel[self._ctrl], dq=s["dq"][self._ctrl], last_action=info["last_action"],
-            phase=phase_sc[acting].reshape(-1), euler=s["euler"], ang_vel=s["ang_vel"],
-            command=command))[None]
+        obs[group.name] = _concat(
+            segments,
+            dict(q=q_rel[self._ctrl], dq=s["dq"][self._ctrl], last_action=info["last_action"],
+                 phase=phase_sc[acting].reshape(-1), euler=s["euler"], ang_vel=s["ang_vel"],
+                 command=command))[None]
         continue
       rows = []
       for k, limb in enumerate(limbs):
         idx = lay.limb_joints[limb]
-        rows.append(_concat(segments, dict(
-            q=q_rel[idx], dq=s["dq"][idx], last_action=last_full[idx],
-            phase=phase_sc[lay.limb_index[limb]], euler=s["euler"], ang_vel=s["ang_vel"],
-            command=command, agent_id=jax.nn.one_hot(k, len(limbs)))))
+        rows.append(
+            _concat(
+                segments,
+                dict(q=q_rel[idx], dq=s["dq"][idx], last_action=last_full[idx],
+                     phase=phase_sc[lay.limb_index[limb]], euler=s["euler"], ang_vel=s["ang_vel"],
+                     command=command, agent_id=jax.nn.one_hot(k, len(limbs)))))
       obs[group.name] = jnp.stack(rows)
 
     if cfg.critic == "local":
-      rows = [jnp.pad(obs[g.name], ((0, 0), (0, self._local_dim - self.frame_dims[g.name])))
-              for g in self.agent_groups]
+      rows = [
+          jnp.pad(obs[g.name], ((0, 0), (0, self._local_dim - self.frame_dims[g.name])))
+          for g in self.agent_groups
+      ]
       obs["critic"] = jnp.concatenate(rows).reshape(-1)
       return obs
 
     dr = info["dr"]
     base_angle = 2 * jnp.pi * info["phase"]
-    obs["critic"] = _concat(lay.critic, dict(
-        q_rel=q_rel, dq=s["dq"], last_action=last_full, q_rel_minus_ref=q_rel - q_ref,
-        phase=jnp.stack([jnp.sin(base_angle), jnp.cos(base_angle)]), command=command,
-        lin_vel=s["lin_vel"], euler=s["euler"], ang_vel=s["ang_vel"], push=info["push"],
-        kick=info.get("kick", jnp.zeros((randomize.KICK_SIZE,))), friction=dr.friction[None],
-        mass_offset=randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
-        stance=stance, contact=contact))
+    obs["critic"] = _concat(
+        lay.critic,
+        dict(q_rel=q_rel, dq=s["dq"], last_action=last_full, q_rel_minus_ref=q_rel - q_ref,
+             phase=jnp.stack([jnp.sin(base_angle),
+                              jnp.cos(base_angle)]), command=command, lin_vel=s["lin_vel"],
+             euler=s["euler"], ang_vel=s["ang_vel"], push=info["push"], kick=info.get(
+                 "kick", jnp.zeros((randomize.KICK_SIZE,))), friction=dr.friction[None],
+             mass_offset=randomize.total_mass(self.mjx_model, dr)[None] - self._nominal_mass,
+             stance=stance, contact=contact))
     return obs
 
   def with_history(self, frames: dict[str, jax.Array],
@@ -398,8 +413,8 @@ class MashEnv(brax_base.Env):
     terms = rewards.apply_curricula(paper_terms, x.env_steps, self.config.reward_params)
     finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
     fall, truncation = self._terminate(state.info, s, finite)
-    info = self._next_info(state.info, keys.rng, s, action, torque, contact, command, phase,
-                           push, fall, truncation, finite)
+    info = self._next_info(state.info, keys.rng, s, action, torque, contact, command, phase, push,
+                           fall, truncation, finite)
     info.update(kick)
     next_state = self._outcome(state, data, info, s, contact, terms, paper_terms, finite,
                                fall | truncation)
@@ -410,8 +425,7 @@ class MashEnv(brax_base.Env):
   def _next_push(self, info: dict[str, Any], key: jax.Array) -> jax.Array:
     """``[5]`` the torso push of this step: a new one every ``push_interval_s`` (every step at 0),
     held in between."""
-    push_every = max(1, int(round(self.config.randomization.push_interval_s
-                                  / self.config.ctrl_dt)))
+    push_every = max(1, int(round(self.config.randomization.push_interval_s / self.config.ctrl_dt)))
     new_push = (info["step"] + 1) % push_every == 0
     return jnp.where(new_push, self._sample_push(key), info["push"])
 
@@ -437,10 +451,11 @@ class MashEnv(brax_base.Env):
     timer = jnp.where(now, randomize.kick_interval_steps(k_timer, r, self.config.ctrl_dt),
                       state.info["kick_timer"] - 1)
     data = state.pipeline_state
-    qvel = data.qvel.at[0:2].add(jnp.where(now, kick[:2], 0.0)).at[5].add(
-        jnp.where(now, kick[2], 0.0))
-    return state.replace(pipeline_state=data.replace(qvel=qvel)), {"kick": kick,
-                                                                    "kick_timer": timer}
+    qvel = data.qvel.at[0:2].add(jnp.where(now, kick[:2],
+                                           0.0)).at[5].add(jnp.where(now, kick[2], 0.0))
+    return state.replace(pipeline_state=data.replace(qvel=qvel)), {
+        "kick": kick, "kick_timer": timer
+    }
 
   def _actuate(self, state: State, action: jax.Array, push: jax.Array,
                k_delay: jax.Array) -> tuple[mjx.Data, jax.Array]:
@@ -456,11 +471,12 @@ class MashEnv(brax_base.Env):
     """
     cfg, r, dr = self.config, self.config.randomization, state.info["dr"]
     model = self.model_for(dr)
-    xfrc = jnp.zeros((self.mj_model.nbody, 6)).at[self._root].set(
-        jnp.concatenate([push[:2], jnp.zeros(1), push[2:]]))
+    xfrc = jnp.zeros((self.mj_model.nbody,
+                      6)).at[self._root].set(jnp.concatenate([push[:2],
+                                                              jnp.zeros(1), push[2:]]))
     data = state.pipeline_state.replace(xfrc_applied=xfrc)
-    delay = (jax.random.uniform(k_delay, minval=r.motor_delay_ms[0], maxval=r.motor_delay_ms[1])
-             * 1e-3 / cfg.physics.sim_dt) if r.enabled else jnp.zeros(())
+    delay = (jax.random.uniform(k_delay, minval=r.motor_delay_ms[0], maxval=r.motor_delay_ms[1]) *
+             1e-3 / cfg.physics.sim_dt) if r.enabled else jnp.zeros(())
     target_new, target_old = self.joint_targets(action), state.info["q_target"]
     kp, kd = self._kp * dr.kp_scale, self._kd * dr.kd_scale
     strength = dr.motor_strength  # scales the torque the motors deliver, their limit included
@@ -503,8 +519,10 @@ class MashEnv(brax_base.Env):
     feet_vel = jnp.where(info["step"] > 0, feet_vel, 0.0)
     # Stride: where the foot landed against where a stride at the commanded velocity would land.
     yaw = s["euler"][2]
-    cmd_world = jnp.array([jnp.cos(yaw) * command[1] - jnp.sin(yaw) * command[2],
-                           jnp.sin(yaw) * command[1] + jnp.cos(yaw) * command[2]])
+    cmd_world = jnp.array([
+        jnp.cos(yaw) * command[1] - jnp.sin(yaw) * command[2],
+        jnp.sin(yaw) * command[1] + jnp.cos(yaw) * command[2]
+    ])
     stride = s["feet_xy"] - info["liftoff_xy"]
     air_time = info["air_time"] + cfg.ctrl_dt
     return rewards.RewardInputs(
@@ -512,12 +530,12 @@ class MashEnv(brax_base.Env):
         last_dq=info["last_dq"], torque=torque, last_torque=info["last_torque"],
         torque_limit=self._tau_max, command=command, base_lin_vel=s["lin_vel"],
         base_ang_vel=s["ang_vel"], euler=s["euler"], gravity_proj=s["gravity"],
-        base_height=s["base_height"], base_height_target=jnp.asarray(self.spec.base_height_target),
-        feet_height=s["feet_height"], feet_vel=feet_vel, contact=contact, stance=stance,
-        first_contact=contact * (1.0 - info["last_contact"]),
-        air_time=jnp.minimum(air_time, cfg.gait_cycle_s / 2),
-        stride_error=jnp.linalg.norm(stride - cmd_world * cfg.gait_cycle_s, axis=-1),
-        penalty_force=penalty_force, action=action, last_action=info["last_action"],
+        base_height=s["base_height"], base_height_target=jnp.asarray(
+            self.spec.base_height_target), feet_height=s["feet_height"], feet_vel=feet_vel,
+        contact=contact, stance=stance, first_contact=contact * (1.0 - info["last_contact"]),
+        air_time=jnp.minimum(air_time, cfg.gait_cycle_s / 2), stride_error=jnp.linalg.norm(
+            stride - cmd_world * cfg.gait_cycle_s,
+            axis=-1), penalty_force=penalty_force, action=action, last_action=info["last_action"],
         last_last_action=info["last_last_action"], dt=cfg.ctrl_dt, env_steps=info["env_steps"])
 
   def _terminate(self, info: dict[str, Any], s: dict[str, jax.Array],
@@ -525,8 +543,8 @@ class MashEnv(brax_base.Env):
     """``(fall, truncation)`` ``[]`` bool: the torso fell (too low or tilted) or the physics blew
     up; the episode ran its length without a fall."""
     cfg = self.config
-    fall = ((s["base_height"] < cfg.fall_height) | (jnp.abs(s["euler"][0]) > cfg.fall_tilt)
-            | (jnp.abs(s["euler"][1]) > cfg.fall_tilt) | ~finite)
+    fall = ((s["base_height"] < cfg.fall_height) | (jnp.abs(s["euler"][0]) > cfg.fall_tilt) |
+            (jnp.abs(s["euler"][1]) > cfg.fall_tilt) | ~finite)
     truncation = (info["step"] + 1 >= cfg.episode_length) & ~fall
     return fall, truncation
 
@@ -538,13 +556,15 @@ class MashEnv(brax_base.Env):
     liftoff = (1.0 - contact) * info["last_contact"]
     air_time = info["air_time"] + self.config.ctrl_dt
     return {
-        **info, "rng": rng, "step": info["step"] + 1, "env_steps": info["env_steps"] + 1,
-        "command": command, "phase": phase, "q_target": self.joint_targets(action),
-        "last_action": action, "last_last_action": info["last_action"], "last_dq": s["dq"],
-        "last_torque": torque, "air_time": air_time * (1.0 - contact), "last_contact": contact,
-        "liftoff_xy": jnp.where(liftoff[:, None] > 0, s["feet_xy"], info["liftoff_xy"]),
-        "feet_xy": s["feet_xy"], "push": push, "truncation": truncation.astype(jnp.float32),
-        "fall": fall.astype(jnp.float32), "nan_reset": (~finite).astype(jnp.float32)}
+        **info, "rng": rng, "step": info["step"] + 1, "env_steps": info["env_steps"] + 1, "command":
+            command, "phase": phase, "q_target": self.joint_targets(action), "last_action": action,
+        "last_last_action": info["last_action"], "last_dq": s["dq"], "last_torque": torque,
+        "air_time": air_time * (1.0 - contact), "last_contact": contact, "liftoff_xy": jnp.where(
+            liftoff[:, None] > 0, s["feet_xy"],
+            info["liftoff_xy"]), "feet_xy": s["feet_xy"], "push": push,
+        "truncation": truncation.astype(jnp.float32), "fall": fall.astype(jnp.float32), "nan_reset":
+            (~finite).astype(jnp.float32)
+    }
 
   def _outcome(self, state: State, data: mjx.Data, info: dict[str, Any], s: dict[str, jax.Array],
                contact: jax.Array, terms: dict[str, jax.Array], paper_terms: dict[str, jax.Array],
@@ -569,8 +589,8 @@ class MashEnv(brax_base.Env):
     ``next_critic_obs``) stays in ``info`` for the trainer."""
     info = state.info
     fresh = self.reset(key, info["env_steps"])
-    fresh.info.update(truncation=info["truncation"], fall=info["fall"],
-                      nan_reset=info["nan_reset"], next_critic_obs=info["next_critic_obs"])
+    fresh.info.update(truncation=info["truncation"], fall=info["fall"], nan_reset=info["nan_reset"],
+                      next_critic_obs=info["next_critic_obs"])
     done = state.done
     pick = lambda new, old: jnp.where(done > 0, new, old)
     return state.replace(

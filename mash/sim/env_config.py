@@ -13,10 +13,7 @@ import numpy as np
 
 from mash.checks import Bound, check_bounds
 from mash.sim import model as model_lib
-from mash.sim import randomize
-from mash.sim import rewards
-from mash.sim import robots
-from mash.sim import tasks
+from mash.sim import randomize, rewards, robots, tasks
 
 PARTITIONS = ("mash", "ppo", "per_limb")  # how the controlled joints split into agents
 CRITICS = ("global", "local")
@@ -152,8 +149,8 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
     ValueError: one line naming the bad field, its value and what was expected.
   """
   for value, allowed, what in ((config.task, tasks.names(), "task"),
-                               (config.partition, PARTITIONS, "partition"),
-                               (config.critic, CRITICS, "critic")):
+                               (config.partition, PARTITIONS, "partition"), (config.critic, CRITICS,
+                                                                             "critic")):
     if value not in allowed:
       raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
   if not robot_given:  # the whole robot file, read and checked (cheap: no model is built)
@@ -167,8 +164,8 @@ def check_config(config: EnvConfig, robot_given: bool = False) -> None:
       raise ValueError(f"task '{config.task}' needs limb group '{missing[0]}', which robot "
                        f"'{spec.name}'{where} does not have: train 'bipedal' on it")
   check_bounds(config, ENV_BOUNDS)
-  for check, section, part in ((model_lib.check_physics, "physics", config.physics),
-                               (check_commands, "commands", config.commands),
+  for check, section, part in ((model_lib.check_physics, "physics",
+                                config.physics), (check_commands, "commands", config.commands),
                                (randomize.check_config, "randomization", config.randomization),
                                (rewards.check_scales, "reward_scales", config.reward_scales),
                                (rewards.check_params, "reward_params", config.reward_params)):
@@ -194,12 +191,11 @@ def with_robot_numbers(config: EnvConfig, spec: robots.RobotSpec) -> EnvConfig:
   r, p = config.randomization, config.reward_params
   return dataclasses.replace(
       config, fall_height=pick(config.fall_height, spec.fall_height),
-      swing_amplitude=pick(config.swing_amplitude, spec.swing_amplitude),
-      arm_swing_amplitude=pick(config.arm_swing_amplitude, spec.arm_swing_amplitude),
-      randomization=dataclasses.replace(r, push_force=pick(r.push_force, spec.push_force),
-                                        push_torque=pick(r.push_torque, spec.push_torque)),
-      reward_params=dataclasses.replace(
-          p, feet_height_target=pick(p.feet_height_target, spec.feet_height_target)))
+      swing_amplitude=pick(config.swing_amplitude, spec.swing_amplitude), arm_swing_amplitude=pick(
+          config.arm_swing_amplitude, spec.arm_swing_amplitude), randomization=dataclasses.replace(
+              r, push_force=pick(r.push_force, spec.push_force),
+              push_torque=pick(r.push_torque, spec.push_torque)), reward_params=dataclasses.replace(
+                  p, feet_height_target=pick(p.feet_height_target, spec.feet_height_target)))
 
 
 def check_commands(commands: CommandConfig) -> None:

@@ -43,8 +43,10 @@ AXIS_NAMES = ("x", "y", "yaw")
 
 def _zyx(rot: np.ndarray) -> np.ndarray:
   """``[3, 3]`` rotation -> ``[3]`` yaw, pitch, roll (rad, ZYX)."""
-  return np.array([np.arctan2(rot[1, 0], rot[0, 0]), -np.arcsin(np.clip(rot[2, 0], -1, 1)),
-                   np.arctan2(rot[2, 1], rot[2, 2])])
+  return np.array([
+      np.arctan2(rot[1, 0], rot[0, 0]), -np.arcsin(np.clip(rot[2, 0], -1, 1)),
+      np.arctan2(rot[2, 1], rot[2, 2])
+  ])
 
 
 def stride_plan(spec: robots.RobotSpec) -> str:
@@ -87,8 +89,7 @@ def stride_gains(model: mujoco.MjModel, spec: robots.RobotSpec, eps: float = 1e-
   for limb in (l for l in spec.limbs if l.group == "legs"):
     _, rot0 = foot_pose(limb, {})
     base, _ = foot_pose(limb, {}, rot0)
-    d = {r: (foot_pose(limb, {limb.joint(r): eps}, rot0)[0] - base) / eps
-         for r in limb.roles}
+    d = {r: (foot_pose(limb, {limb.joint(r): eps}, rot0)[0] - base) / eps for r in limb.roles}
     for axis, hip, ankle in STRIDE_AXES:
       if hip not in limb.roles:
         continue
@@ -127,12 +128,14 @@ def measured_mirror(model: mujoco.MjModel, spec: robots.RobotSpec) -> dict[str, 
 def mirror_mismatches(model: mujoco.MjModel, spec: robots.RobotSpec) -> list[str]:
   """One line per role whose ``mirror`` in the robot file disagrees with the model's axes
   (:func:`measured_mirror`), each starting with the field to change."""
-  return [f"roles.{role}.mirror is {spec.mirror_sign[role]:+.0f}, but the model's right {role} "
-          f"joint turns {'the same way as' if sign > 0 else 'against'} the mirror image of the "
-          f"left's: expected {sign:+.0f} (the references and the default pose would not be "
-          "mirror images)"
-          for role, sign in measured_mirror(model, spec).items()
-          if spec.mirror_sign[role] != sign]
+  return [
+      f"roles.{role}.mirror is {spec.mirror_sign[role]:+.0f}, but the model's right {role} "
+      f"joint turns {'the same way as' if sign > 0 else 'against'} the mirror image of the "
+      f"left's: expected {sign:+.0f} (the references and the default pose would not be "
+      "mirror images)"
+      for role, sign in measured_mirror(model, spec).items()
+      if spec.mirror_sign[role] != sign
+  ]
 
 
 def check_mirror(model: mujoco.MjModel, spec: robots.RobotSpec) -> None:

@@ -21,10 +21,8 @@ from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
-from mash.sim import agents
-from mash.sim import robots
-from mash.sim import tasks
 from mash.checks import check_number
+from mash.sim import agents, robots, tasks
 from mash.sim.env_config import CRITICS, MAX_ACTOR_HISTORY, PARTITIONS, EnvConfig
 
 COMMAND_SIZE = 4  # standing flag (0/1), vx (m/s), vy (m/s), yaw rate (rad/s)
@@ -197,9 +195,15 @@ def actor_segments(n_joints: int, n_last_action: int, n_phase_limbs: int,
   last actions, the sin/cos gait phase of each limb it acts for (pairs, limb by limb; zeros with the
   temporal director off), torso euler and angular velocity, the command, and (``n_agent_id`` > 0)
   its one-hot id."""
-  parts = [Segment("q", n_joints), Segment("dq", n_joints), Segment("last_action", n_last_action),
-           Segment("phase", 2 * n_phase_limbs), Segment("euler", 3), Segment("ang_vel", 3),
-           Segment("command", COMMAND_SIZE)]
+  parts = [
+      Segment("q", n_joints),
+      Segment("dq", n_joints),
+      Segment("last_action", n_last_action),
+      Segment("phase", 2 * n_phase_limbs),
+      Segment("euler", 3),
+      Segment("ang_vel", 3),
+      Segment("command", COMMAND_SIZE)
+  ]
   if n_agent_id:
     parts.append(Segment("agent_id", n_agent_id))
   return Segments(tuple(parts))
@@ -213,12 +217,12 @@ def critic_segments(n_joints: int, n_legs: int, n_feet: int, kicks: bool = False
   friction, total mass minus nominal (kg), the legs' reference stance mask and the feet's contact
   mask."""
   kick = (Segment("kick", KICK_SIZE),) if kicks else ()
-  return Segments((
-      Segment("q_rel", n_joints), Segment("dq", n_joints), Segment("last_action", n_joints),
-      Segment("q_rel_minus_ref", n_joints), Segment("phase", 2), Segment("command", COMMAND_SIZE),
-      Segment("lin_vel", 3), Segment("euler", 3), Segment("ang_vel", 3),
-      Segment("push", PUSH_SIZE), *kick, Segment("friction", 1), Segment("mass_offset", 1),
-      Segment("stance", n_legs), Segment("contact", n_feet)))
+  return Segments((Segment("q_rel", n_joints), Segment("dq", n_joints),
+                   Segment("last_action", n_joints), Segment("q_rel_minus_ref", n_joints),
+                   Segment("phase", 2), Segment("command", COMMAND_SIZE), Segment("lin_vel", 3),
+                   Segment("euler", 3), Segment("ang_vel", 3), Segment("push", PUSH_SIZE), *kick,
+                   Segment("friction", 1), Segment("mass_offset", 1), Segment("stance", n_legs),
+                   Segment("contact", n_feet)))
 
 
 def _frozen(x: Any, dtype: Any) -> np.ndarray:
@@ -237,8 +241,8 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
       serve them).
   """
   for value, allowed, what in ((config.task, tasks.names(), "task"),
-                               (config.partition, PARTITIONS, "partition"),
-                               (config.critic, CRITICS, "critic")):
+                               (config.partition, PARTITIONS, "partition"), (config.critic, CRITICS,
+                                                                             "critic")):
     if value not in allowed:
       raise ValueError(f"{what} '{value}' is unknown; expected one of {', '.join(allowed)}")
   check_number("actor_history", config.actor_history, 1, MAX_ACTOR_HISTORY, "control steps")
@@ -278,19 +282,14 @@ def build(spec: robots.RobotSpec, config: EnvConfig) -> Layout:
     n_legs = sum(1 for l in spec.limbs if l.group == "legs")
     critic = critic_segments(len(joints), n_legs, len(spec.feet), config.randomization.kicks)
 
-  return Layout(
-      joints=joints,
-      default_pose=_frozen([spec.default_pose[j] for j in joints], np.float64),
-      kp=_frozen([spec.kp[j] for j in joints], np.float64),
-      kd=_frozen([spec.kd[j] for j in joints], np.float64),
-      torque_limit=_frozen([spec.torque_limit[j] for j in joints], np.float64),
-      limbs=tuple(l.name for l in spec.limbs),
-      limb_index=limb_index,
-      limb_joints=limb_joints,
-      phase_offset=_frozen([phase_offset(l) for l in spec.limbs], np.float64),
-      controlled=_frozen(controlled, np.int64),
-      groups=groups,
-      group_limbs={name: tuple(l.name for l in limbs) for name, limbs in grouped},
-      actor=actor,
-      actor_history=int(config.actor_history),
-      critic=critic)
+  return Layout(joints=joints, default_pose=_frozen([spec.default_pose[j] for j in joints],
+                                                    np.float64),
+                kp=_frozen([spec.kp[j] for j in joints],
+                           np.float64), kd=_frozen([spec.kd[j] for j in joints], np.float64),
+                torque_limit=_frozen([spec.torque_limit[j] for j in joints],
+                                     np.float64), limbs=tuple(l.name for l in spec.limbs),
+                limb_index=limb_index, limb_joints=limb_joints, phase_offset=_frozen(
+                    [phase_offset(l) for l in spec.limbs], np.float64), controlled=_frozen(
+                        controlled, np.int64), groups=groups, group_limbs={
+                            name: tuple(l.name for l in limbs) for name, limbs in grouped
+                        }, actor=actor, actor_history=int(config.actor_history), critic=critic)

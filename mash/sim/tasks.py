@@ -40,11 +40,13 @@ class Task:
 
 
 TASKS: dict[str, Task] = {
-    "bipedal": Task("bipedal", acting=("legs",),
-                    description="two leg agents walk; the arms are held at the default pose"),
-    "armswing": Task("armswing", acting=("legs", "arms"), arm_swing=True,
-                     description="two leg and two arm agents; each arm swings with the opposite "
-                                 "leg"),
+    "bipedal":
+        Task("bipedal", acting=("legs",),
+             description="two leg agents walk; the arms are held at the default pose"),
+    "armswing":
+        Task("armswing", acting=("legs", "arms"), arm_swing=True,
+             description="two leg and two arm agents; each arm swings with the opposite "
+             "leg"),
 }
 
 
