@@ -1,4 +1,5 @@
-"""``python -m experiments.benchmark [--quick]``: throughput of physics, env and training, in one process.
+"""``python -m experiments.benchmark [--quick]``: throughput of physics, env and training, in one
+process.
 
 Prints one JSON object and writes it to ``benchmark.json``: bare ``mjx.step`` physics, the batched
 env step, and full training for MASH, our PPO and Brax's PPO on the same env and sizes, compile

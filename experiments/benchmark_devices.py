@@ -1,4 +1,5 @@
-"""``python -m experiments.benchmark_devices [--batch 256] [--steps 20]``: what a second CPU device buys.
+"""``python -m experiments.benchmark_devices [--batch 256] [--steps 20]``: what a second CPU device
+buys.
 
 Times the real MJX env's batched env step (and with ``--train`` the MASH trainer) in one process
 vs two joined by ``jax.distributed`` into a global mesh vs two unconnected, each in worker

@@ -14,8 +14,8 @@ the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the d
 learning curve), the same files in the folder.
 
 ``--tracking`` measures how the policy follows its commands instead: ``--episodes`` (default 64)
-episodes per command of ``mash.analysis.evaluation.TRACKING_GRID`` (standing; vx -0.3 to 0.8; vy +-0.2;
-yaw rate +-0.5), randomization and pushes as trained, into ``DIR/eval_tracking/``:
+episodes per command of ``mash.analysis.evaluation.TRACKING_GRID`` (standing; vx -0.3 to 0.8;
+vy +-0.2; yaw rate +-0.5), randomization and pushes as trained, into ``DIR/eval_tracking/``:
 ``tracking.json`` (per command: falls and the achieved heading-frame velocities; the mean |error|
 per axis, the fall rate and the standing drift), ``tracking.png`` (commanded against achieved)
 and ``tracking_trajectories.npz`` (``commands [E,4]``, ``velocity [E,T,3]``, ``alive [E,T]``).

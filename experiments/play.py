@@ -12,7 +12,8 @@ about 0.1 s per frame on a CPU).
 
 Examples:
   python -m experiments.play --policy t1_bipedal_mash
-  python -m experiments.play --policy t1_bipedal_mash --video walk.mp4 --seconds 10 --command 0.6,0,0
+  python -m experiments.play --policy t1_bipedal_mash --video walk.mp4 --seconds 10 \
+--command 0.6,0,0
   python -m experiments.play --policy runs/bipedal_mash_cpu_X --stand --video stand.mp4
 """
 

@@ -1,4 +1,5 @@
-"""``python -m experiments.robot check FILE``: a robot file checked against its model before training.
+"""``python -m experiments.robot check FILE``: a robot file checked against its model before
+training.
 
 Reads the file (every joint and body name checked against its MJCF), builds the model, compares
 the mirror signs with the joint axes, holds the default pose at zero action for --seconds in

@@ -4,9 +4,9 @@ The learner tests (``test_losses``, ``test_networks``, ``test_train``) use the t
 (:mod:`toy_env`) and tiny networks so that every jitted program compiles in seconds on CPU.
 
 JAX's persistent compilation cache is on for the whole session, in ``.jax_cache/`` at the repository
-root (git-ignored; a ``JAX_COMPILATION_CACHE_DIR`` set by the caller wins). The settings are also put
-in the environment, so every subprocess and notebook kernel a test starts shares the cache: a CLI
-run of the smoke preset loads the program the ``smoke_run`` fixture compiled (measured on 2 busy
+root (git-ignored; a ``JAX_COMPILATION_CACHE_DIR`` set by the caller wins). The settings are also
+put in the environment, so every subprocess and notebook kernel a test starts shares the cache: a
+CLI run of the smoke preset loads the program the ``smoke_run`` fixture compiled (measured on 2 busy
 CPU cores: ~210 s cold, ~40 s from the cache, most of it tracing and lowering). Entries are keyed by
 the program, the compile options and the JAX version, so stale ones are never used, only kept:
 delete ``.jax_cache/`` to reclaim the space.
@@ -18,13 +18,14 @@ of 260 s and ``test_brax.py`` in 76 s instead of 121 s (fresh caches, 2 busy CPU
 compare runs of the same session with each other, never with a curve recorded outside it, so the
 level changes no verdict; the recipes' own runs keep XLA's defaults.
 
-The suite runs in two worker processes (pytest-xdist, ``-n 2 --dist loadgroup
---no-loadscope-reorder`` in ``pyproject.toml``): compiling is single-threaded, so two workers keep both cores busy. Tests are
-grouped so that the smoke trainer, the costliest fixture, is compiled once per worker at most: the
-tests that train with it or change its run form one group, sent first to one worker; each other
-file is a group of its own, handed to whichever worker is free, in file order. The files whose
-tests only read the smoke run (``SMOKE_READERS``) go last, when the trainer is in the persistent
-cache, so that a second worker builds the run from the cache rather than compiling it again.
+The suite runs in two worker processes (pytest-xdist,
+``-n 2 --dist loadgroup --no-loadscope-reorder`` in ``pyproject.toml``): compiling is
+single-threaded, so two workers keep both cores busy. Tests are grouped so that the smoke trainer,
+the costliest fixture, is compiled once per worker at most: the tests that train with it or change
+its run form one group, sent first to one worker; each other file is a group of its own, handed to
+whichever worker is free, in file order. The files whose tests only read the smoke run
+(``SMOKE_READERS``) go last, when the trainer is in the persistent cache, so that a second worker
+builds the run from the cache rather than compiling it again.
 """
 
 from __future__ import annotations

@@ -3,16 +3,17 @@
 ``python tests/distributed_worker.py --out DIR --num-processes N --process-id I --coordinator H:P``
 
 With ``N = 2`` the two processes (one CPU device each) join through ``jax.distributed``; with
-``N = 1`` the process must see two CPU devices itself (``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
-Either way the same sharded program trains the same config from the same key for ``--calls``
-jitted calls, and each process writes ``DIR/result_p{I}.npz``: parameters, normalizer statistics,
-the metrics of every call and the global env batch's last rewards, keyed by pytree path.
-With ``--checkpoint`` it also saves the final global state with Orbax (every process) and restores it
-into a globally sharded template, checking the round trip. With ``--run DIR`` it then trains the
-same config from the same key through :func:`mash.runs.loop.train` (the CLI's loop) into ``DIR``: one
-call, stopped by ``max_calls``, then ``resume=True`` to the end (``num_iterations = 2 * calls``
-iterations in all), and checks that a second non-resume ``train`` into ``DIR`` is refused by
-every process.
+``N = 1`` the process must see two CPU devices itself
+(``XLA_FLAGS=--xla_force_host_platform_device_count=2``). Either way the same sharded program trains
+the same config from the same key for ``--calls`` jitted calls, and each process writes
+``DIR/result_p{I}.npz``: parameters, normalizer statistics, the metrics of every call and the global
+env batch's last rewards, keyed by pytree path.
+With ``--checkpoint`` it also saves the final global state with Orbax (every process) and restores
+it into a globally sharded template, checking the round trip. With ``--run DIR`` it then trains the
+same config from the same key through :func:`mash.runs.loop.train` (the CLI's loop) into ``DIR``:
+one call, stopped by ``max_calls``, then ``resume=True`` to the end (``num_iterations = 2 * calls``
+iterations in all), and checks that a second non-resume ``train`` into ``DIR`` is refused by every
+process.
 """
 
 from __future__ import annotations

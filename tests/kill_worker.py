@@ -41,7 +41,8 @@ def _die(marks: Path, name: str) -> None:
 
 
 def _watch_calls(marks: Path, kill_call: int | None) -> None:
-  """Wraps the trainer ``mash.runs.loop.train`` builds: marks each call, kills in call ``kill_call``."""
+  """Wraps the trainer ``mash.runs.loop.train`` builds: marks each call, kills in call
+  ``kill_call``."""
   import jax
 
   from mash.runs import loop as runs

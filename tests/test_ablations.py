@@ -1,4 +1,5 @@
-"""Ablation switches: each one resolves to a config, builds its env and networks, and does what it says.
+"""Ablation switches: each one resolves to a config, builds its env and networks, and does what it
+says.
 
 No MJX step is compiled here: only ``reset`` (no physics) and network applies.
 """

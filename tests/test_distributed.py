@@ -1,13 +1,15 @@
-"""Multi-process training: two processes joined by ``jax.distributed`` equal one process over two devices.
+"""Multi-process training: two processes joined by ``jax.distributed`` equal one process over two
+devices.
 
 Three subprocesses of ``tests/distributed_worker.py`` run at once on 127.0.0.1: a pair of processes
 with one CPU device each, joined into a global 2-device mesh (the multi-host path, Gloo
 collectives), and one process with two forced CPU devices. Both train the toy env with the same
 config and key through :func:`mash.rl.trainer.make_trainer` (with a mesh) for two jitted calls; the
 pair also saves and restores its global state with Orbax, then trains again through
-:func:`mash.runs.loop.train` (the CLI's loop) into a run directory, stopping after one call and resuming. Every parameter, statistic and metric must
-agree: between the two processes of the pair exactly (replicated values), and between the pair and
-the single process to float tolerance (only the collective's implementation differs).
+:func:`mash.runs.loop.train` (the CLI's loop) into a run directory, stopping after one call and
+resuming. Every parameter, statistic and metric must agree: between the two processes of the pair
+exactly (replicated values), and between the pair and the single process to float tolerance (only
+the collective's implementation differs).
 """
 
 from __future__ import annotations

@@ -260,7 +260,8 @@ def test_local_critic_sees_each_agents_newest_frame_with_actor_history():
 
 
 def test_leg_observation_layout(dr_env):
-  """Leg agent row: q_rel 6 | dq 6 | previous action 6 | phase sin,cos | euler | angvel | command | id."""
+  """Leg agent row: q_rel 6 | dq 6 | previous action 6 | phase sin,cos | euler | angvel | command |
+  id."""
   sensors, info, contact = _random_inputs(dr_env, seed=1, phase=0.3)
   obs = _observe(dr_env, sensors, info, contact)["legs"]
   q_rel = sensors["q"] - np.array([T1.default_pose[j] for j in T1.joints])

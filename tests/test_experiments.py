@@ -118,7 +118,8 @@ def test_cpu_preset_is_the_measured_walking_run():
   assert preset.env.stride_reference and preset.env.actor_history == 1
   assert (preset.env.physics.iterations, preset.env.physics.ls_iterations) == (2, 2)
   assert preset.train.num_envs == 400
-  assert preset.env.reward_params.tracking_sigma == 0.1 and preset.env.reward_params.yaw_sigma == 0.25
+  assert (preset.env.reward_params.tracking_sigma == 0.1 and
+          preset.env.reward_params.yaw_sigma == 0.25)
   assert _with_robot_numbers(measured) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 24_000 == 1000 * preset.train.unroll_length
   assert preset.env.randomization.friction_ramp_steps == 24_000
@@ -434,7 +435,8 @@ def test_readme_table_comes_from_the_committed_reports():
 
 def test_compare_resumes_seed_by_seed(evaluated_smoke_run, tmp_path):
   """compare's plan per seed: nothing there -> new; a run stopped early -> resume, or restart
-  when its checkpoints are not there; trained to the end -> done. Its report pairs the seeds evaluated for both methods."""
+  when its checkpoints are not there; trained to the end -> done. Its report pairs the seeds
+  evaluated for both methods."""
   import shutil
 
   from mash.analysis import compare

@@ -40,8 +40,8 @@ def random_run(task: str, partition: str = "mash", share_actor: bool = True, see
   shapes = jax.eval_shape(nets.init, jax.random.PRNGKey(0))
   rng = np.random.default_rng(seed)
 
-  # Weights at 1/sqrt(fan_in) keep the actions of order one to ten, like a trained policy's: the 1e-5
-  # tolerance is absolute, and float32 spacing alone is 4e-6 at 32.
+  # Weights at 1/sqrt(fan_in) keep the actions of order one to ten, like a trained policy's: the
+  # 1e-5 tolerance is absolute, and float32 spacing alone is 4e-6 at 32.
   def draw(s):
     fan_in = s.shape[-2] if len(s.shape) >= 2 else 10.0
     return jnp.asarray(rng.normal(0.0, 1.0 / math.sqrt(fan_in), s.shape), jnp.float32)

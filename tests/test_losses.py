@@ -1,4 +1,5 @@
-"""Tests of mash.rl.losses: GAE against a plain loop and hand cases, the MAPPO loss against hand arithmetic."""
+"""Tests of mash.rl.losses: GAE against a plain loop and hand cases, the MAPPO loss against hand
+arithmetic."""
 
 from __future__ import annotations
 

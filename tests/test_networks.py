@@ -1,4 +1,5 @@
-"""Tests of mash.rl.networks and mash.rl.normalization: shapes, parameter sharing, value heads, statistics."""
+"""Tests of mash.rl.networks and mash.rl.normalization: shapes, parameter sharing, value heads,
+statistics."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""``experiments.play``: a shipped policy played headless writes a video; bad inputs are one line."""
+"""``experiments.play``: a shipped policy played headless writes a video; bad inputs are one
+line."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""mash.deploy.policy: a trained policy loaded without the trainer, saved as a small folder, and the import
-graph of the deployment code (evaluate, export, play, sim2sim), which must not reach training code.
+"""mash.deploy.policy: a trained policy loaded without the trainer, saved as a small folder, and the
+import graph of the deployment code (evaluate, export, play, sim2sim), which must not reach training
+code.
 
 The reference of the first test is the trainer itself: the smoke run's checkpoint restored into the
 trainer's own state template (``runs.restore_run``, the way evaluation loaded policies before

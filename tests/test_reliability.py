@@ -64,7 +64,8 @@ def _stderr_lines(text: str) -> list[str]:
 
 
 def _subprocess_env() -> dict[str, str]:
-  """This environment (with conftest's compilation-cache settings) plus the repository on the path."""
+  """This environment (with conftest's compilation-cache settings) plus the repository on the
+  path."""
   path = os.environ.get("PYTHONPATH", "")
   return dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{path}" if path else str(REPO))
 
@@ -775,8 +776,8 @@ def test_full_disk_at_a_results_file_is_one_line_and_resumes(smoke_config, smoke
     "error, line",
     [
         (_no_space("eval/metrics.json"),
-         "error: cannot write 'eval/metrics.json': No space left on device; free space, then run the "
-         "command again"),
+         "error: cannot write 'eval/metrics.json': No space left on device; free space, then run "
+         "the command again"),
         (OSError(30, "Read-only file system", "run/policy.onnx"),
          "error: cannot write 'run/policy.onnx': Read-only file system; free space, then run the "
          "command again"),

@@ -1,5 +1,5 @@
-"""Tests for mash.sim.rewards: each of the sixteen terms against a hand computation (arithmetic in the
-comments) on one constructed ``RewardInputs``, the scaling convention, signs and the clip."""
+"""Tests for mash.sim.rewards: each of the sixteen terms against a hand computation (arithmetic in
+the comments) on one constructed ``RewardInputs``, the scaling convention, signs and the clip."""
 
 import dataclasses
 

@@ -144,7 +144,8 @@ TWO_DEVICE_GRADIENTS = textwrap.dedent("""
         obs=obs, actions=actions, log_probs=-jax.random.uniform(next(k), (m, n)) - 3.0,
         values=values, advantages=jax.random.normal(next(k), (m, n)),
         returns=values + jax.random.normal(next(k), (m, n)))
-    one, one_metrics = jax.jit(lambda b: train.loss_gradients(params, None, b, networks, config))(batch)
+    one, one_metrics = jax.jit(lambda b: train.loss_gradients(params, None, b, networks,
+                                                              config))(batch)
     mesh = jax.make_mesh((2,), ('devices',), axis_types=(jax.sharding.AxisType.Auto,))
     two, two_metrics = jax.jit(jax.shard_map(
         lambda b: train.loss_gradients(params, None, b, networks, config, 'devices'),

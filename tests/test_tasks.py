@@ -1,6 +1,6 @@
-"""Tasks as data (mash.sim.tasks): an entry names its acting limb groups, its references, its command
-ranges and reward-scale overrides, and the layout, the env's reference and the presets follow it
-with no other change."""
+"""Tasks as data (mash.sim.tasks): an entry names its acting limb groups, its references, its
+command ranges and reward-scale overrides, and the layout, the env's reference and the presets
+follow it with no other change."""
 
 from __future__ import annotations
 

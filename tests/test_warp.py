@@ -34,7 +34,8 @@ def _physics(impl: str, **fields) -> model_lib.PhysicsConfig:
 
 # ------------------------------------------------------------------------------ without Warp
 def test_the_warp_probe_matches_the_installed_packages():
-  """``model_lib.warp_installed`` reads MJX's probe: true exactly where warp-lang can be imported."""
+  """``model_lib.warp_installed`` reads MJX's probe: true exactly where warp-lang can be
+  imported."""
   assert model_lib.warp_installed() == (importlib.util.find_spec("warp") is not None)
 
 

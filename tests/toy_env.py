@@ -1,10 +1,11 @@
 """A tiny multi-agent stand-in for the MJX humanoid: the trainer's interface, no physics.
 
-Each limb is a small set of "joints" (legs 2 each, arms 1 each) that follow a first-order response to
-the commanded position, ``q' = q + gain * (a - q)``. Every limb must track a sinusoid driven by one
-shared gait phase with the paper's temporal-director offsets (legs 0 / 0.5, each arm in phase with the
-opposite leg). The reward is shared (tracking + alive bonus + action-smoothness penalty); the episode
-ends by a "fall" when any limb strays too far from its target, or by time-out at a fixed length.
+Each limb is a small set of "joints" (legs 2 each, arms 1 each) that follow a first-order response
+to the commanded position, ``q' = q + gain * (a - q)``. Every limb must track a sinusoid driven by
+one shared gait phase with the paper's temporal-director offsets (legs 0 / 0.5, each arm in phase
+with the opposite leg). The reward is shared (tracking + alive bonus + action-smoothness penalty);
+the episode ends by a "fall" when any limb strays too far from its target, or by time-out at a fixed
+length.
 The env auto-resets inside ``step`` and reports the terminal critic observation in
 ``info['next_critic_obs']``, exactly like the real env, so the trainer, tests and notebooks run
 in seconds on CPU. Like the real env, a non-finite state (inject one by setting ``q`` to NaN in a
@@ -216,7 +217,8 @@ class ToyEnv:
     truncation = (timeout & ~fell).astype(jnp.float32)
 
     # Auto-reset without drawing random numbers (keeps the step program small): the next episode
-    # starts on its targets at a phase shifted by the golden ratio, so restarts spread over the cycle.
+    # starts on its targets at a phase shifted by the golden ratio, so restarts spread over the
+    # cycle.
     restart_phase = jnp.mod(phase + 0.618034, 1.0)
     fresh = ToyPipelineState(q=self._targets(restart_phase), prev_action=jnp.zeros_like(q),
                              phase=restart_phase, t=jnp.zeros((), jnp.int32))

@@ -51,9 +51,9 @@ keys = jax.random.split(jax.random.PRNGKey(0), B)
 for mode in (0, 1):
   r, m, alive, x, contact = jax.device_get(run(keys, mode))
   steps = alive.sum(0)
-  print(
-      f"== {'reference' if mode else 'zero action'} (scale {scale}): survived {steps.mean():.0f}/{T} steps, "
-      f"x travelled {np.mean(x[-1] - x[0]):+.3f} m, reward/step {r.sum() / alive.sum():.4f}, "
-      f"feet in contact {contact[alive > 0].mean():.2f}")
+  print(f"== {'reference' if mode else 'zero action'} (scale {scale}): "
+        f"survived {steps.mean():.0f}/{T} steps, "
+        f"x travelled {np.mean(x[-1] - x[0]):+.3f} m, reward/step {r.sum() / alive.sum():.4f}, "
+        f"feet in contact {contact[alive > 0].mean():.2f}")
   for k in sorted(m):
     print(f"   {k:32s} {m[k].sum() / alive.sum():+.5f}")

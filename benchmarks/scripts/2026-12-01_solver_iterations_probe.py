@@ -9,8 +9,8 @@ episodes at vx 0.4 m/s on floors of friction U[LO, HI], with the env's solver se
 ITERATIONS / LS, and prints one JSON line. The script now imports the current package layout
 (``mash.analysis``, ``mash.deploy``, ``mash.sim``), so run it in the current tree with only commit
 b46426c's ``mash/assets/policies/t1_bipedal_mash/`` brought in (``git show
-b46426c:mash/assets/policies/t1_bipedal_mash/<file> > mash/assets/policies/t1_bipedal_mash/<file>`` for
-``card.md``, ``config.json``, ``policy.json``, ``policy.npz``, ``policy.onnx``).
+b46426c:mash/assets/policies/t1_bipedal_mash/<file> > mash/assets/policies/t1_bipedal_mash/<file>``
+for ``card.md``, ``config.json``, ``policy.json``, ``policy.npz``, ``policy.onnx``).
 """
 
 import dataclasses

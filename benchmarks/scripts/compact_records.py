@@ -1,4 +1,5 @@
-"""Compacts the committed records of training runs: progress logs become gzip files, plots palette PNGs.
+"""Compacts the committed records of training runs: progress logs become gzip files, plots palette
+PNGs.
 
   python benchmarks/scripts/compact_records.py [--no-plots] PATH [PATH ...]
 
@@ -9,8 +10,8 @@ holds a run's progress logs:
   deterministically (no file name, mtime 0, level 9), so a rerun gives identical bytes;
 - ``progress_seeds.csv`` (the per-seed log) is dropped when the run has one seed (its
   ``config.json`` says ``"seeds": 1``, or, without one, the file holds a single seed value) and
-  the run's ``progress.csv(.gz)`` is there: it then repeats that log's columns. Any other run (several
-  seeds, or none found) keeps it as ``progress_seeds.csv.gz``, compressed the same way.
+  the run's ``progress.csv(.gz)`` is there: it then repeats that log's columns. Any other run
+  (several seeds, or none found) keeps it as ``progress_seeds.csv.gz``, compressed the same way.
 
 Unless ``--no-plots`` is given, every ``*.png`` found is also rewritten as a 256-colour palette PNG
 (Pillow: converted to RGB, median-cut quantized without dithering, saved with ``optimize=True``;

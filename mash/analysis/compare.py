@@ -81,9 +81,12 @@ def family_tests(table: dict, keys: list[str], family: str) -> dict:
   """Welch's test, Holm's correction over ``keys`` (one family), Hedges' g (MASH - PPO) and the
   verdict; for the primary family also the power at the observed effect and the smallest
   detectable effect at :data:`POWER`, both at Holm's strictest level ``ALPHA / len(keys)``."""
+  # yapf: disable
   out = {
-      k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"]) for k in keys
+      k: metrics_lib.welch_ttest(table["mash"][k]["values"], table["ppo"][k]["values"])
+      for k in keys
   }
+  # yapf: enable
   adjusted = metrics_lib.holm([out[k]["p"] for k in keys])
   for k, p_holm in zip(keys, adjusted):
     a, b = table["mash"][k]["values"], table["ppo"][k]["values"]

@@ -129,7 +129,8 @@ def rollout(env: env_lib.MashEnv, policy: Callable[[dict[str, jax.Array]], jax.A
     ``shoulder_pitch [E,T,2]`` (left, right; rad),
     ``forward_velocity [E,T]`` (torso frame, m/s), ``world_velocity [E,T,3]`` (torso vx, vy in
     the world frame, m/s, and the world-frame yaw rate, rad/s), ``command [E,T,4]`` (the command
-    in force), ``alive [E,T]`` (1 until the fall), ``contact [E,T,2]``, ``friction [E]`` (the episode's floor-sole friction), ``dt`` (s).
+    in force), ``alive [E,T]`` (1 until the fall), ``contact [E,T,2]``, ``friction [E]`` (the
+    episode's floor-sole friction), ``dt`` (s).
   """
   steps = int(round(cfg.episode_s / env.dt))
   hips = env.spec.role_indices("hip_pitch", "legs")

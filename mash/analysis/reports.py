@@ -3,10 +3,11 @@
 :func:`evaluate_run`: deterministic rollouts of every seed's policy at a fixed forward command
 (domain randomization on) -> ``eval/metrics.json`` (the paper's metrics per seed and their spread,
 the falls split by floor friction), ``eval/trajectories.npz`` and ``eval/hip_pitch.png``.
-:func:`tracking_run`: the policy over the command grid (:data:`mash.analysis.evaluation.TRACKING_GRID`)
--> ``eval_tracking/tracking.json``, ``tracking.png`` and ``tracking_trajectories.npz``. A
-diagnostic (no DR, no pushes, another friction range, seed or checkpoint) writes to a folder of
-its own name (:func:`eval_dir_name`), never over the evaluation as trained.
+:func:`tracking_run`: the policy over the command grid
+(:data:`mash.analysis.evaluation.TRACKING_GRID`) -> ``eval_tracking/tracking.json``,
+``tracking.png`` and ``tracking_trajectories.npz``. A diagnostic (no DR, no pushes, another friction
+range, seed or checkpoint) writes to a folder of its own name (:func:`eval_dir_name`), never over
+the evaluation as trained.
 """
 
 from __future__ import annotations
@@ -235,7 +236,8 @@ def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
 
 
 def plot_hip_pitch(traj: dict, dt: float, path: Path, label: str, seconds: float = 3.0) -> None:
-  """The paper's joint-position figure: left/right hip pitch vs the temporal director's reference."""
+  """The paper's joint-position figure: left/right hip pitch vs the temporal director's
+  reference."""
   n = min(int(seconds / dt), traj["hip_pitch"].shape[1])
   t = np.arange(n) * dt
   fig = Figure(figsize=(7, 4))

@@ -4,7 +4,8 @@ The graph holds everything between the robot's sensors and its joint targets, so
 MuJoCo C controller needs no Python from this package (SPEC §4 observation layout):
 
   inputs (float32, leading batch dim ``N``; use ``N = 1`` on a robot):
-    ``q [N, J]``            absolute joint angles (rad) of ALL actuated joints, ``spec.joints`` order
+    ``q [N, J]``            absolute joint angles (rad) of ALL actuated joints, ``spec.joints``
+                            order
     ``dq [N, J]``           joint velocities (rad/s), same order
     ``last_action [N, A]``  the previous ``action`` output (zeros at start)
     ``gait_phase [N, 1]``   gait clock in cycles, [0, 1); advances ``ctrl_dt / gait_cycle_s`` per
@@ -19,10 +20,11 @@ MuJoCo C controller needs no Python from this package (SPEC §4 observation layo
                             ``default + action_scale * clip(action, -action_clip, action_clip)``
 
 Inside: each limb's sin/cos phase with the env's offsets (legs 0 / 0.5, each arm with the opposite
-leg), one feature row ``[q - default | dq | last_action | sin | cos | euler | ang_vel | command | 0 | 1]``
-from which every agent's observation is one ``Gather`` (joints of its limb, its phase, the one-hot
-id from the constant columns), the running-statistics normalization, each group's shared actor
-MLP (``MatMul``/``Add``/``Elu``) applied to all agents of the group at once, and the scatter of
+leg), one feature row
+``[q - default | dq | last_action | sin | cos | euler | ang_vel | command | 0 | 1]`` from which
+every agent's observation is one ``Gather`` (joints of its limb, its phase, the one-hot id from the
+constant columns), the running-statistics normalization, each group's shared actor MLP
+(``MatMul``/``Add``/``Elu``) applied to all agents of the group at once, and the scatter of
 per-agent actions into flat order. Joint order, units, control rate, default pose, PD gains and
 action scale are in the model's ``metadata_props`` (:func:`read_metadata`).
 
@@ -546,8 +548,8 @@ def onnx_session(path: str | os.PathLike):
 
 
 def verify(path: str | os.PathLike, policy, n: int = 256, input_seed: int = 0) -> dict[str, float]:
-  """Runs the ONNX file and the JAX reference of ``policy`` (a :class:`mash.deploy.policy.Policy`, or
-  its :class:`PolicyParts`) on ``n`` random observations.
+  """Runs the ONNX file and the JAX reference of ``policy`` (a :class:`mash.deploy.policy.Policy`,
+  or its :class:`PolicyParts`) on ``n`` random observations.
 
   On an accelerator the reference runs at full float32 matmul precision: there JAX's default for
   float32 matmuls is lower (TF32 on NVIDIA: measured 6e-4 off on an H200, against 6e-7 at

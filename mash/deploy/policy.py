@@ -2,10 +2,11 @@
 
 :func:`load` reads a policy from either
 
-- a **run directory** (``config.json`` + Orbax ``checkpoints/``, :mod:`mash.runs.loop`): only the policy
-  fields (:data:`mash.runs.checkpoint.POLICY_FIELDS`) of the newest checkpoint that restores (older
-  ones are tried, with a warning, when newer ones are torn), or of the one saved at ``iteration``,
-  read as saved (no template state, so no trainer, optimizer or env state is built); or
+- a **run directory** (``config.json`` + Orbax ``checkpoints/``, :mod:`mash.runs.loop`): only the
+  policy fields (:data:`mash.runs.checkpoint.POLICY_FIELDS`) of the newest checkpoint that restores
+  (older ones are tried, with a warning, when newer ones are torn), or of the one saved at
+  ``iteration``, read as saved (no template state, so no trainer, optimizer or env state is built);
+  or
 - a **policy folder** (:func:`save`), format ``mash-policy-folder/1``:
 
   ``config.json``  the run's resolved :class:`mash.runs.experiment.ExperimentConfig`, as in the run

@@ -1,1 +1,2 @@
-"""The learner: MAPPO's networks, normalization, losses, the jitted algorithm and its trainer variants."""
+"""The learner: MAPPO's networks, normalization, losses, the jitted algorithm and its trainer
+variants."""

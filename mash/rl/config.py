@@ -2,10 +2,10 @@
 
 ``TrainConfig`` holds every knob of the learner with the paper's values as defaults where the paper
 gives them (``num_iterations``, ``unroll_length``) and the legged_gym / humanoid-gym (rsl_rl PPO)
-values otherwise; each field's docstring names its source. Derived sizes (batch, minibatch, env steps)
-come from the pure function :func:`derived`, which is also where inconsistent sizes are rejected.
-The same config trains MASH (limb agents) and the single-agent PPO baseline: the agent partition
-belongs to the environment, not to this config.
+values otherwise; each field's docstring names its source. Derived sizes (batch, minibatch, env
+steps) come from the pure function :func:`derived`, which is also where inconsistent sizes are
+rejected. The same config trains MASH (limb agents) and the single-agent PPO baseline: the agent
+partition belongs to the environment, not to this config.
 """
 
 from __future__ import annotations

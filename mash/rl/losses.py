@@ -4,17 +4,19 @@ Shapes: ``T`` unroll steps, ``B`` environments, ``M`` samples of a minibatch (``
 ``N`` agents over all groups (groups in order, members in order).
 
 The paper's objective (its eq. "MAPPO") sums one clipped PPO surrogate per agent,
-``L = sum_i E_t[min(r_t^i A_t^i, clip(r_t^i, 1-eps, 1+eps) A_t^i)]``, where ``r_t^i`` is agent ``i``'s
-own probability ratio (its Gaussian log-prob summed over its action dims) and ``A_t^i`` its advantage
-from its own value head. Conventions fixed here:
+``L = sum_i E_t[min(r_t^i A_t^i, clip(r_t^i, 1-eps, 1+eps) A_t^i)]``, where ``r_t^i`` is agent
+``i``'s own probability ratio (its Gaussian log-prob summed over its action dims) and ``A_t^i`` its
+advantage from its own value head. Conventions fixed here:
 
 - policy loss: summed over agents (the paper's equation), mean over samples;
 - entropy: summed over agents (the entropy of the joint policy, so it means the same thing for MASH
   and the single-agent baseline), mean over samples;
 - approx_kl: summed over agents (the KL of the joint policy), mean over samples;
-- value loss: clipped squared error (rsl_rl form, no 1/2), MEAN over agents and samples, so its scale
-  does not depend on the number of agents and ``value_loss_coef`` means the same for any partition;
-- advantages: normalized per agent over the minibatch (over all devices when ``axis_name`` is given);
+- value loss: clipped squared error (rsl_rl form, no 1/2), MEAN over agents and samples, so its
+  scale does not depend on the number of agents and ``value_loss_coef`` means the same for any
+  partition;
+- advantages: normalized per agent over the minibatch (over all devices when ``axis_name`` is
+  given);
 - sample weights (``LossBatch.weights``, 0 for transitions into a blown-up physics state): a
   weight-0 sample has zero advantage, is left out of the advantage statistics and of every mean.
 """
@@ -68,8 +70,8 @@ def compute_gae(rewards: jax.Array, values: jax.Array, next_values: jax.Array, d
   Args:
     rewards: ``[T, B]`` shared reward (or ``[T, B, N]``).
     values: ``[T, B, N]`` ``V(s_t)``.
-    next_values: ``[T, B, N]`` ``V(s'_t)`` of the state reached by step t (the terminal state, before
-      the auto-reset, when the episode ended).
+    next_values: ``[T, B, N]`` ``V(s'_t)`` of the state reached by step t (the terminal state,
+      before the auto-reset, when the episode ended).
     dones: ``[T, B]`` 1.0 where the episode ended at step t (fall or time-out).
     truncations: ``[T, B]`` 1.0 where it ended by time-out only.
     gamma: discount.
@@ -200,8 +202,11 @@ def mappo_loss(params: nets.Params, normalizer: normalization.Normalizer | None,
   """
   dists = networks.policy_apply(params, normalizer, batch.obs)
   groups = networks.groups
+  # yapf: disable
   log_probs = nets.per_agent(
-      groups, {g.name: nets.gaussian_log_prob(dists[g.name], batch.actions[g.name]) for g in groups})
+      groups,
+      {g.name: nets.gaussian_log_prob(dists[g.name], batch.actions[g.name]) for g in groups})
+  # yapf: enable
   entropy = nets.per_agent(groups, {g.name: nets.gaussian_entropy(dists[g.name]) for g in groups})
   values = networks.value_apply(params, normalizer, batch.obs["critic"])
   advantages = batch.advantages

@@ -206,8 +206,8 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 
   Under ``learning_rate_schedule='adaptive_kl'`` or ``'linear'`` the rate lives in the optimizer
   state (``optax.inject_hyperparams``; read and set with ``optax.tree_utils.tree_get/tree_set``
-  under the name ``learning_rate``), so it is checkpointed and resumed with it. The update runs on all
-  parameters raveled into one vector (``optax.flatten``): the same math, but a handful of fused
+  under the name ``learning_rate``), so it is checkpointed and resumed with it. The update runs on
+  all parameters raveled into one vector (``optax.flatten``): the same math, but a handful of fused
   kernels instead of a few per parameter array, which shortens compilation.
   """
   if config.learning_rate_schedule == "adaptive_kl":
@@ -283,7 +283,8 @@ def loss_gradients(params: nets.Params, normalizer: normalization.Normalizer | N
 
 
 def _screen_blowups(state: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """Reward ``[B]``, ``next_critic_obs`` ``[B, ...]`` and the blow-up mask ``[B]`` of a batched step.
+  """Reward ``[B]``, ``next_critic_obs`` ``[B, ...]`` and the blow-up mask ``[B]`` of a batched
+  step.
 
   A step is a blow-up when the env says so (``info['nan_reset']``) or when its reward or terminal
   critic observation is not finite; its reward and critic observation are zeroed so that no NaN

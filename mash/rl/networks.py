@@ -1,9 +1,9 @@
 """Actor and critic networks of MASH, the Gaussian policy math, and their pure apply functions.
 
 - :class:`GroupActor`: one MLP (ELU) shared by all agents of a group; maps ONE agent's observation
-  ``[obs_dim]`` to its action mean ``[act_dim]``, with a state-independent learned log-std per group.
-  With ``share_actor=False`` (ablation) the module is vmapped over the group's agents with separate
-  parameters (:class:`PerAgentActor`).
+  ``[obs_dim]`` to its action mean ``[act_dim]``, with a state-independent learned log-std per
+  group. With ``share_actor=False`` (ablation) the module is vmapped over the group's agents with
+  separate parameters (:class:`PerAgentActor`).
 - :class:`CentralCritic`: one MLP on the privileged critic observation with one value head per agent
   (or a single head broadcast to all agents when ``shared_value_head``).
 - :func:`make_networks` builds both and returns pure ``init`` / ``policy_apply`` / ``value_apply``
@@ -120,7 +120,8 @@ class PerAgentActor(nn.Module):
 
   @nn.compact
   def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``obs [..., n_agents, obs_dim]`` -> ``(mean [..., n_agents, act_dim], log_std [n_agents, act_dim])``."""
+    """``obs [..., n_agents, obs_dim]`` ->
+    ``(mean [..., n_agents, act_dim], log_std [n_agents, act_dim])``."""
     actors = nn.vmap(GroupActor, in_axes=0, out_axes=0, variable_axes={"params": 0},
                      split_rngs={"params": True}, axis_size=self.n_agents)
     mean, log_std = actors(self.act_dim, self.hidden_sizes,
@@ -297,7 +298,8 @@ def sample_actions(key: jax.Array, dists: Mapping[str, GaussianParams]) -> dict[
 
 
 def per_agent(groups: Sequence[AgentGroup], values: Mapping[str, jax.Array]) -> jax.Array:
-  """Concatenates per-group ``{group: [..., n_agents_g]}`` into ``[..., total_agents]`` (agent order)."""
+  """Concatenates per-group ``{group: [..., n_agents_g]}`` into ``[..., total_agents]`` (agent
+  order)."""
   return jnp.concatenate([values[g.name] for g in groups], axis=-1)
 
 

@@ -1,9 +1,9 @@
 """Running observation normalization: mean and variance with counts, as pure functions.
 
-One :class:`RunningStats` per observation stream (each agent group's stream and the critic's), kept in
-the train state as ``{stream_name: RunningStats}``. Statistics are merged from whole rollout batches
-with the parallel (Chan et al.) update, so the result does not depend on how the batch is split, and
-across devices by summing counts, sums and squared deviations over an optional mesh axis.
+One :class:`RunningStats` per observation stream (each agent group's stream and the critic's), kept
+in the train state as ``{stream_name: RunningStats}``. Statistics are merged from whole rollout
+batches with the parallel (Chan et al.) update, so the result does not depend on how the batch is
+split, and across devices by summing counts, sums and squared deviations over an optional mesh axis.
 """
 
 from __future__ import annotations
@@ -93,5 +93,6 @@ def init_normalizer(sizes: Mapping[str, int]) -> Normalizer:
 
 def update_normalizer(normalizer: Normalizer, obs: Mapping[str, jax.Array],
                       axis_name: str | None = None) -> Normalizer:
-  """Updates every stream of ``normalizer`` from ``obs[stream]`` (``[..., dim]``); see :func:`update_stats`."""
+  """Updates every stream of ``normalizer`` from ``obs[stream]`` (``[..., dim]``); see
+  :func:`update_stats`."""
   return {name: update_stats(stats, obs[name], axis_name) for name, stats in normalizer.items()}

@@ -1,1 +1,2 @@
-"""Training runs on disk: experiment configs and presets, the host loop and its hooks, checkpoints, loggers."""
+"""Training runs on disk: experiment configs and presets, the host loop and its hooks, checkpoints,
+loggers."""

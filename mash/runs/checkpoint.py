@@ -1,19 +1,20 @@
-"""Orbax checkpoints of a whole :class:`mash.rl.mappo.TrainState`, with the config beside it as JSON.
+"""Orbax checkpoints of a whole :class:`mash.rl.mappo.TrainState`, with the config beside it as
+JSON.
 
 A checkpoint step holds two items: ``state`` (params, optimizer state, normalizer statistics, env
 state, episode bookkeeping, rng, iteration; restored exactly, so training resumes bit-for-bit) and
-``config`` (the :class:`mash.rl.config.TrainConfig` as JSON). Orbax writes each step into a temporary
-directory and renames it when complete, so a crash mid-save leaves no step that ``all_steps`` would
-list. A step that is listed but does not restore (torn by a copy, a full disk, a stray edit) is
-skipped with a one-line warning on stderr: :func:`restore_latest` returns the newest step that
-restores, and raises :class:`CheckpointError` (one line) when steps exist but none restores. Nothing
-is ever deleted here. Only the newest ``max_to_keep`` steps are kept by :func:`make_manager`'s
-manager. A save the storage refuses (a full disk, a quota, a read-only file system) raises
-:class:`StorageError`, one line; the steps already saved stay as they were (its temporary directory
-is replaced by the next save of that step). Typed PRNG keys in the state are stored as their raw
-data and re-wrapped on restore. Without a trainer (no template state), :func:`restore_latest_flat`
-reads some top-level fields as saved, ``{key path: array}``, and :func:`unflatten` nests them: how
-:mod:`mash.deploy.policy` loads one.
+``config`` (the :class:`mash.rl.config.TrainConfig` as JSON). Orbax writes each step into a
+temporary directory and renames it when complete, so a crash mid-save leaves no step that
+``all_steps`` would list. A step that is listed but does not restore (torn by a copy, a full disk, a
+stray edit) is skipped with a one-line warning on stderr: :func:`restore_latest` returns the newest
+step that restores, and raises :class:`CheckpointError` (one line) when steps exist but none
+restores. Nothing is ever deleted here. Only the newest ``max_to_keep`` steps are kept by
+:func:`make_manager`'s manager. A save the storage refuses (a full disk, a quota, a read-only file
+system) raises :class:`StorageError`, one line; the steps already saved stay as they were (its
+temporary directory is replaced by the next save of that step). Typed PRNG keys in the state are
+stored as their raw data and re-wrapped on restore. Without a trainer (no template state),
+:func:`restore_latest_flat` reads some top-level fields as saved, ``{key path: array}``, and
+:func:`unflatten` nests them: how :mod:`mash.deploy.policy` loads one.
 """
 
 from __future__ import annotations
@@ -167,9 +168,10 @@ def restore(manager: ocp.CheckpointManager, step: int, template_state: Any,
   fields are read and the rest of the returned state is zeros, so a checkpoint stays usable for
   evaluation and export after the env state's layout changed.
 
-  A template with shardings (:func:`mash.rl.distributed.global_state_shapes`) restores global arrays,
-  each process reading its own shards (collective: every process calls this); a template without
-  them restores onto this process's first device, whatever devices the checkpoint was saved from.
+  A template with shardings (:func:`mash.rl.distributed.global_state_shapes`) restores global
+  arrays, each process reading its own shards (collective: every process calls this); a template
+  without them restores onto this process's first device, whatever devices the checkpoint was saved
+  from.
   """
   abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct,
                           jax.tree.map(_key_to_data_shape, template_state))
@@ -252,8 +254,9 @@ def _data_to_key(restored: Any, template: Any) -> Any:
 
 
 def _match_commitment(restored: jax.Array, template: Any) -> jax.Array:
-  """Orbax returns device-committed arrays; a fresh ``init`` state is uncommitted, and jit caches the
-  two separately (a resumed run would compile twice). Uncommit where the template is uncommitted."""
+  """Orbax returns device-committed arrays; a fresh ``init`` state is uncommitted, and jit caches
+  the two separately (a resumed run would compile twice). Uncommit where the template is
+  uncommitted."""
   committed = (getattr(template, "committed", False) if isinstance(template, jax.Array) else
                getattr(template, "sharding", None) is not None)
   return restored if committed else jnp.asarray(np.asarray(restored))

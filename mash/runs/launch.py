@@ -384,8 +384,8 @@ def train_main(task: str, args: argparse.Namespace, argv: list[str] | None) -> N
           f"{cfg.train.num_iterations} iterations -> {out}{devices_note()}", flush=True)
       if cfg.env.stride_reference:
         say(
-            f"stride reference on {cfg.env.robot}: {geometry.stride_plan(robots.load(cfg.env.robot))}",
-            flush=True)
+            f"stride reference on {cfg.env.robot}: "
+            f"{geometry.stride_plan(robots.load(cfg.env.robot))}", flush=True)
       summary = loop.train(cfg, out, show_progress=not args.no_progress)
     _say_outcome(say, task, out, summary)
   status = cli.exit_status(summary)

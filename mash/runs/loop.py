@@ -7,25 +7,26 @@ TensorBoard event files (and a Weights & Biases run with ``wandb``: :mod:`mash.r
 ``checkpoints/``, ``summary.json`` and ``reward_curve.png``.
 The loop (:func:`train`) only calls a :class:`mash.rl.trainer.Trainer`, whichever its variant
 (one seed, many seeds, a mesh); what happens between its jitted calls (logs, scalar
-loggers, checkpoints, the progress bar) are :class:`Hook` s, and signals :class:`StopOnSignals`. SIGINT/SIGTERM
-end the run after the call in flight, with a complete checkpoint to ``--resume`` from (a second
-signal aborts at once; Orbax's atomic step directories still leave the last complete checkpoint
-loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced atomically. A
-checkpoint step that does not restore is skipped with a warning (:func:`mash.runs.checkpoint.restore_latest`);
-on resume such newer steps are moved to ``checkpoints_unrestorable/``, never deleted. A kill
-(SIGKILL, a power cut) loses at most the calls since the last complete checkpoint: a resume drops
-the log rows past it, and a torn last row. A checkpoint or run file the storage refuses (a full
-disk, a quota, a read-only file system) ends the run with one line,
-:class:`mash.errors.StorageError`, naming it and the last complete checkpoint.
-Evaluation, export and sim-to-sim load a run's policy without this module: :mod:`mash.deploy.policy`.
+loggers, checkpoints, the progress bar) are :class:`Hook` s, and signals :class:`StopOnSignals`.
+SIGINT/SIGTERM end the run after the call in flight, with a complete checkpoint to ``--resume`` from
+(a second signal aborts at once; Orbax's atomic step directories still leave the last complete
+checkpoint loadable). Files a resume rewrites (``progress.csv``, ``summary.json``) are replaced
+atomically. A checkpoint step that does not restore is skipped with a warning
+(:func:`mash.runs.checkpoint.restore_latest`); on resume such newer steps are moved to
+``checkpoints_unrestorable/``, never deleted. A kill (SIGKILL, a power cut) loses at most the calls
+since the last complete checkpoint: a resume drops the log rows past it, and a torn last row. A
+checkpoint or run file the storage refuses (a full disk, a quota, a read-only file system) ends the
+run with one line, :class:`mash.errors.StorageError`, naming it and the last complete checkpoint.
+Evaluation, export and sim-to-sim load a run's policy without this module:
+:mod:`mash.deploy.policy`.
 
 Several devices (``jax.device_count() > 1``: one process with several GPUs, or several processes
-joined by :func:`mash.rl.distributed.initialize`) train one seed with its env batch split over a mesh of
-all of them (:func:`build_trainer`); ``num_envs`` must divide by the device count. Every process
-runs the same loop; only process 0 writes run files and draws the progress bar, while checkpoint
-saves and restores are collective (every process takes part). ``--seeds N > 1`` keeps the seed-vmapped
-single-device trainer: in one process it trains on the first device (with a warning), across
-processes it is refused. ``docs/multi_device.md`` has the commands.
+joined by :func:`mash.rl.distributed.initialize`) train one seed with its env batch split over a
+mesh of all of them (:func:`build_trainer`); ``num_envs`` must divide by the device count. Every
+process runs the same loop; only process 0 writes run files and draws the progress bar, while
+checkpoint saves and restores are collective (every process takes part). ``--seeds N > 1`` keeps the
+seed-vmapped single-device trainer: in one process it trains on the first device (with a warning),
+across processes it is refused. ``docs/multi_device.md`` has the commands.
 """
 
 from __future__ import annotations

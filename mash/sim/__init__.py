@@ -1,1 +1,2 @@
-"""The simulated robot and its task: robot files, the MJX model, layout, env, rewards, randomization."""
+"""The simulated robot and its task: robot files, the MJX model, layout, env, rewards,
+randomization."""

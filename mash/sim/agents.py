@@ -2,8 +2,8 @@
 
 An *agent group* is a set of agents that share one actor network (the two legs, the two arms).
 Agents of a group are stacked on a leading axis: observations ``[n_agents, obs_dim]`` and actions
-``[n_agents, act_dim]``. The environment's flat action vector (Brax's API) holds the controlled joints
-in robot order; ``action_index`` says where each agent's action entries go in it.
+``[n_agents, act_dim]``. The environment's flat action vector (Brax's API) holds the controlled
+joints in robot order; ``action_index`` says where each agent's action entries go in it.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@
 every physics substep, auto-resets finished episodes (``auto_reset``) and keeps the critic
 observation of the terminal state in ``info['next_critic_obs']`` so time-outs can be bootstrapped.
 A physics blow-up (NaN/inf in ``qpos``/``qvel``) ends the episode like a fall, with its reward,
-observations and ``next_critic_obs`` zeroed and ``info['nan_reset'] = 1`` so the trainer can mask it.
+observations and ``next_critic_obs`` zeroed and ``info['nan_reset'] = 1`` so the trainer can mask
+it.
 """
 
 from __future__ import annotations
@@ -66,10 +67,10 @@ class JointAddresses(NamedTuple):
 class MashEnv(brax_base.Env):
   """A humanoid whose limbs are agents (see module docstring).
 
-  Public attributes: ``config``, ``spec``, ``layout`` (:class:`mash.sim.layout.Layout`: joint tables,
-  controlled joints, agent groups, observation segments), ``agent_groups`` (``layout.groups``),
-  ``n_joints``, ``frame_dims``, ``critic_obs_size``, ``n_substeps``, ``mj_model``, ``mjx_model``;
-  the joints' model addresses come from :meth:`joint_addresses`.
+  Public attributes: ``config``, ``spec``, ``layout`` (:class:`mash.sim.layout.Layout`: joint
+  tables, controlled joints, agent groups, observation segments), ``agent_groups``
+  (``layout.groups``), ``n_joints``, ``frame_dims``, ``critic_obs_size``, ``n_substeps``,
+  ``mj_model``, ``mjx_model``; the joints' model addresses come from :meth:`joint_addresses`.
   """
 
   def __init__(self, config: EnvConfig = EnvConfig(), spec: robots.RobotSpec | None = None):
@@ -183,7 +184,8 @@ class MashEnv(brax_base.Env):
     ])
 
   def limb_phase(self, phase: jax.Array) -> jax.Array:
-    """[L] temporal director T_i = sin(2 pi (phase + Delta_i)) as an angle 2 pi (phase + Delta_i)."""
+    """[L] temporal director T_i = sin(2 pi (phase + Delta_i)) as an angle 2 pi (phase +
+    Delta_i)."""
     return 2 * jnp.pi * (phase + self._phase_offset)
 
   def gait(self, phase: jax.Array, standing: jax.Array,

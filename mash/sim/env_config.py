@@ -43,7 +43,8 @@ class EnvConfig:
   Attributes:
     task: 'bipedal' (legs act, arms held by PD at the default pose) or 'armswing' (all limbs act).
     partition: 'mash' (one group per limb kind: legs share one actor, arms another), 'ppo' (one
-      agent controls the whole body: the single-agent baseline), 'per_limb' (each limb its own group).
+      agent controls the whole body: the single-agent baseline), 'per_limb' (each limb its own
+      group).
     robot: a shipped robot's name (``robots.names()``: the files of ``mash/assets/robots/``) or the
       path of a robot file (``.toml``).
     ctrl_dt: control period (s); 50 Hz.

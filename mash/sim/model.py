@@ -95,8 +95,8 @@ def build_model(spec: RobotSpec, physics: PhysicsConfig = PhysicsConfig(),
       MuJoCo C, which is not limited to MJX's collision set).
 
   Returns:
-    A compiled ``MjModel`` with motor actuators on ``spec.joints`` (in that order), a floor, the sole
-    spheres, the penalty capsules and their pairs, and a ``home`` keyframe.
+    A compiled ``MjModel`` with motor actuators on ``spec.joints`` (in that order), a floor, the
+    sole spheres, the penalty capsules and their pairs, and a ``home`` keyframe.
   """
   mj = mujoco.MjSpec.from_file(str(robots.mjcf_file(spec)))
   try:
@@ -168,7 +168,8 @@ def _add_motors(mj: mujoco.MjSpec, spec: RobotSpec) -> None:
 
 
 def _set_options(mj: mujoco.MjSpec, physics: PhysicsConfig) -> None:
-  """The solver settings of ``physics``: Newton, its iterations, the integrator, no Euler damping."""
+  """The solver settings of ``physics``: Newton, its iterations, the integrator, no Euler
+  damping."""
   mj.option.timestep = physics.sim_dt
   mj.option.iterations = physics.iterations
   mj.option.ls_iterations = physics.ls_iterations

@@ -4,7 +4,8 @@ and the torque noise its text adds.
 Reset-time draws (friction, link masses, CoM offset, gravity, joint damping / friction / armature,
 Kp and Kd scales) live in :class:`DomainParams`, one per environment, kept in the env state; the
 MJX model each env steps is the shared model with those fields replaced (``apply``), so under
-``vmap`` every env has its own physics. Per-step draws (motor delay, pushes, torque noise) happen in the env step.
+``vmap`` every env has its own physics. Per-step draws (motor delay, pushes, torque noise) happen in
+the env step.
 """
 
 from __future__ import annotations

@@ -83,8 +83,8 @@ class RobotSpec:
     sole_points: sole contact sphere centres (m), in each foot's frame: ``(left, right)``, as
       many on each foot (the file gives one list for both, or one per foot).
     sole_radius: radius of those spheres (m).
-    penalized_pairs: pairs of (body, body) whose contact the collision penalty counts; each body gets
-      a capsule ``(fromto in body frame (6,), radius)`` from ``collision_capsules``.
+    penalized_pairs: pairs of (body, body) whose contact the collision penalty counts; each body
+      gets a capsule ``(fromto in body frame (6,), radius)`` from ``collision_capsules``.
     collision_capsules: body name -> (fromto (6,), radius) of its penalty capsule.
     gait_reference: leg joint role -> amplitude multiplier of the swing reference (hip pitch -1,
       knee +2, ankle pitch -1 bends the swing leg).
