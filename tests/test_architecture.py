@@ -4,6 +4,7 @@ without import circles, thin entry points, short functions, imports at the top."
 from __future__ import annotations
 
 import ast
+import subprocess
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,3 +123,20 @@ def test_entry_points_are_thin():
     assert not [m for m in named if m == "experiments" or m.startswith("experiments.")], path
   total = sum(len(p.read_text().splitlines()) for p in files)
   assert total < MAX_EXPERIMENTS_LINES, total
+
+
+MAX_TRACKED_MB = 30
+MAX_README_LINES = 260
+
+
+def test_the_repository_is_code_not_bulk():
+  """The tracked tree (records included) stays under 30 MB and the README a guide of about 250
+  lines; outside a git checkout (an unpacked sdist) only the README is checked."""
+  readme = (REPO / "README.md").read_text().splitlines()
+  assert len(readme) <= MAX_README_LINES, len(readme)
+  listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=False)
+  if listed.returncode != 0:
+    return
+  files = [REPO / f for f in listed.stdout.decode().split("\0") if f]
+  total = sum(f.stat().st_size for f in files if f.is_file())
+  assert total < MAX_TRACKED_MB * 1e6, f"{total / 1e6:.1f} MB tracked"
