@@ -9,7 +9,9 @@ with ``--push-interval S`` to ``DIR/eval_push_interval_<S>s/`` (``--friction LO 
 floor-friction range, appends ``_friction_<LO>-<HI>``), so a diagnostic never replaces the
 evaluation as trained. ``--iteration N`` evaluates the checkpoint saved at iteration N instead of
 the latest (a learning curve's earlier policies) and appends ``_it<N>`` to the directory's name;
-``--seed S`` draws other episodes (floors, robots, pushes) and appends ``_seed<S>``.
+``--seed S`` draws other episodes (floors, robots, pushes) and appends ``_seed<S>``. A run trained
+with velocity kicks is evaluated without them (the paper's randomization; the robustness battery
+measures shoves); ``--kicks`` keeps them and appends ``_kicks``.
 ``DIR`` may also be a policy folder (:mod:`mash.deploy.policy`): its one policy, no ``T_conv`` (no
 learning curve), the same files in the folder.
 
@@ -44,6 +46,10 @@ def main(argv=None) -> None:
       "--push-interval", type=float, default=None, metavar="S",
       help="hold each push S seconds (0: a new push every control step) instead of the "
       "run's own setting (writes DIR/eval_push_interval_<S>s/)")
+  p.add_argument(
+      "--kicks", action="store_true",
+      help="keep the training's velocity kicks on (off by default: evaluation reports "
+      "the paper's randomization; appends _kicks to the output directory)")
   p.add_argument(
       "--iteration", type=int, default=None, metavar="N",
       help="evaluate the checkpoint saved at iteration N, not the latest (appends "
@@ -104,10 +110,10 @@ def _robustness(args) -> None:
   """``--robustness``: the battery in MJX (its own episodes, command and seed)."""
   cli.check_path(args.run, "--run")
   given = [
-      f for f, v in (("--tracking", args.tracking), ("--no-dr", args.no_dr),
-                     ("--no-push", args.no_push), ("--friction", args.friction),
-                     ("--push-interval", args.push_interval), ("--command-vx", args.command_vx))
-      if v
+      f for f, v in (("--tracking", args.tracking), ("--no-dr", args.no_dr), ("--no-push",
+                                                                              args.no_push),
+                     ("--friction", args.friction), ("--push-interval", args.push_interval),
+                     ("--command-vx", args.command_vx), ("--kicks", args.kicks)) if v
   ]
   if given:
     raise cli.UserError(f"--robustness runs its own conditions; drop {', '.join(given)}")
@@ -149,11 +155,13 @@ def _eval_config(args) -> evaluation.EvalConfig:
   if args.friction is not None and (args.no_dr or not 0 < args.friction[0] <= args.friction[1]):
     raise cli.UserError(f"--friction takes LO HI with 0 < LO <= HI and needs DR on (not with "
                         f"--no-dr), got {args.friction}")
-  cfg = evaluation.EvalConfig(command_vx=args.command_vx, num_episodes=args.episodes,
-                              episode_s=args.seconds, randomization=not args.no_dr,
-                              pushes=not args.no_push, push_interval_s=args.push_interval,
-                              friction=None if args.friction is None else tuple(args.friction),
-                              **({} if args.seed is None else {"seed": args.seed}))
+  if args.kicks and args.no_dr:
+    raise cli.UserError("--kicks needs the randomization on (not with --no-dr)")
+  cfg = evaluation.EvalConfig(
+      command_vx=args.command_vx, num_episodes=args.episodes, episode_s=args.seconds,
+      randomization=not args.no_dr, pushes=not args.no_push, push_interval_s=args.push_interval,
+      friction=None if args.friction is None else tuple(args.friction), kicks=args.kicks,
+      **({} if args.seed is None else {"seed": args.seed}))
   try:
     evaluation.check_config(cfg, reports.EVAL_FLAGS)
   except ValueError as e:

@@ -34,6 +34,9 @@ class EvalConfig:
       policy against held pushes, or 0 to evaluate an older held-push run as runs now train.
     friction: floor-friction range ``(lo, hi)`` drawn from instead of the run's own; None keeps
       the run's. E.g. (0.1, 1.2), the paper's, for a run trained on a narrower range.
+    kicks: keep the training's velocity kicks of the torso on (``DomainRandConfig.kick_*``). Off
+      by default: evaluation reports the paper's randomization, so a figure means the same for a
+      run trained with kicks and one without; the robustness battery measures shoves.
     seed: rollout seed.
 
   The sane range of every number is checked by :func:`check_config`.
@@ -46,6 +49,7 @@ class EvalConfig:
   pushes: bool = True
   push_interval_s: float | None = None
   friction: tuple[float, float] | None = None
+  kicks: bool = False
   seed: int = 1234
 
 
@@ -78,7 +82,8 @@ def check_config(cfg: EvalConfig, labels: Mapping[str, str] | None = None) -> No
 
 
 def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_config.EnvConfig:
-  """The training env config at a fixed forward command, no auto-reset, long enough episodes."""
+  """The training env config at a fixed forward command, no auto-reset, long enough episodes,
+  the training's kicks off unless ``cfg.kicks``."""
   steps = int(round(cfg.episode_s / env_cfg.ctrl_dt))
   commands = env_config.CommandConfig(vx=(cfg.command_vx, cfg.command_vx), vy=(0.0, 0.0),
                                       yaw_rate=(0.0, 0.0), standing_prob=0.0,
@@ -94,6 +99,9 @@ def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_confi
     randomization = dataclasses.replace(randomization, push_interval_s=cfg.push_interval_s)
   if cfg.friction is not None:
     randomization = dataclasses.replace(randomization, friction=tuple(cfg.friction))
+  if not cfg.kicks:
+    randomization = dataclasses.replace(randomization, kick_velocity=(0.0, 0.0),
+                                        kick_yaw_rate=(0.0, 0.0))
   return dataclasses.replace(env_cfg, commands=commands, randomization=randomization,
                              episode_length=steps + 1, auto_reset=False)
 

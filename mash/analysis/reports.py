@@ -218,8 +218,8 @@ def plot_tracking(result: dict, path: Path, title: str) -> None:
 def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
   """``eval`` for the evaluation of the latest checkpoint with every randomized parameter on as
   trained, else the diagnostic's name; ``_friction_<lo>-<hi>`` appended for another friction
-  range, ``_seed<S>`` for another rollout seed than the default, then ``_it<N>`` for the
-  checkpoint of iteration N."""
+  range, ``_kicks`` with the training's kicks on, ``_seed<S>`` for another rollout seed than the
+  default, then ``_it<N>`` for the checkpoint of iteration N."""
   suffix = "" if iteration is None else f"_it{iteration}"
   if eval_cfg.seed != type(eval_cfg).seed:
     suffix = f"_seed{eval_cfg.seed}" + suffix
@@ -228,6 +228,8 @@ def eval_dir_name(eval_cfg, iteration: int | None = None) -> str:
   if eval_cfg.friction is not None:
     lo, hi = eval_cfg.friction
     suffix = f"_friction_{lo:g}-{hi:g}" + suffix
+  if eval_cfg.kicks:
+    suffix = "_kicks" + suffix
   if not eval_cfg.pushes:
     return "eval_no_push" + suffix
   if eval_cfg.push_interval_s is not None:

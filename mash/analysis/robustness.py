@@ -262,10 +262,7 @@ def battery_env_config(trained: env_config.EnvConfig, cfg: BatteryConfig) -> env
   fixed forward command, no training kicks (the battery's own kick is the condition)."""
   eval_cfg = evaluation.EvalConfig(command_vx=cfg.command_vx, num_episodes=cfg.episodes,
                                    episode_s=cfg.episode_s, seed=cfg.seed)
-  env_cfg = evaluation.eval_env_config(trained, eval_cfg)
-  return dataclasses.replace(
-      env_cfg, randomization=dataclasses.replace(env_cfg.randomization, kick_velocity=(0.0, 0.0),
-                                                 kick_yaw_rate=(0.0, 0.0)))
+  return evaluation.eval_env_config(trained, eval_cfg)
 
 
 def summarize(conds: list[Condition], alive: np.ndarray, forward_velocity: np.ndarray,
