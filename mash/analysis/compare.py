@@ -56,12 +56,20 @@ def _seeds(n: int) -> str:
 # Which way is better, per metric (forward speed: faster, at a command the policies fall short of).
 LOWER_IS_BETTER = {
     "T_conv": True, "S_action": True, "S_action_2nd": True, "S_torso": True, "C_limb": True,
-    "C_limb_arm_leg": True, "fall_rate": True, "forward_speed": False
+    "C_limb_arm_leg": True, "fall_rate": True, "forward_speed": False, "survival": False
 }
 PAPER_METRICS = ("T_conv", "S_action", "S_torso", "C_limb")
 ALL_EPISODE_METRICS = ("S_action", "S_action_2nd", "S_torso", "C_limb")
 
 PRIMARY = PAPER_METRICS  # the verdict's family, fixed before the runs
+# The robustness batteries a kept policy may hold (``seed<s>/policy/<folder>/robustness.json``)
+# and the prefix of their report keys: ``robustness_mjx/kick 0.5 m/s`` is that condition's
+# survival in MJX.
+BATTERIES = {
+    "robustness_mjx": ("eval_robustness", "MJX"),
+    "robustness_native": ("sim2sim_robustness", "MuJoCo C")
+}
+MIN_BATTERY_SEEDS = 2  # a battery's rows need this many seeds a method (Welch's test needs 2)
 ALPHA = 0.05
 POWER = 0.8
 
@@ -73,8 +81,34 @@ def _summary(values: list[float]) -> dict:
 
 def _metric_of(key: str) -> str:
   """The metric a report key measures: ``all_episodes/S_action`` and ``T_conv@25`` -> the name
-  :data:`LOWER_IS_BETTER` knows."""
+  :data:`LOWER_IS_BETTER` knows; a battery's condition -> ``survival``."""
+  if key.split("/")[0] in BATTERIES:
+    return "survival"
   return key.split("/")[-1].split("@")[0]
+
+
+def battery_survival(seed_dir: Path) -> dict[str, float]:
+  """``{'<battery>/<condition>': survival}`` of every robustness battery that the seed's kept
+  policy holds (none without one)."""
+  out = {}
+  for prefix, (folder, _) in BATTERIES.items():
+    path = Path(seed_dir) / "policy" / folder / "robustness.json"
+    if path.is_file():
+      for row in json.loads(path.read_text())["conditions"]:
+        out[f"{prefix}/{row['name']}"] = float(row["survival"])
+  return out
+
+
+def _battery_keys(results: dict) -> list[str]:
+  """The battery conditions that at least :data:`MIN_BATTERY_SEEDS` seeds of each method were
+  put through, in the batteries' order."""
+  keys: list[str] = []
+  for m in results["mash"]["per_seed"]:
+    keys += [k for k in m if k.split("/")[0] in BATTERIES and k not in keys]
+  return [
+      k for k in keys if all(
+          sum(k in m for m in res["per_seed"]) >= MIN_BATTERY_SEEDS for res in results.values())
+  ]
 
 
 def family_tests(table: dict, keys: list[str], family: str) -> dict:
@@ -129,6 +163,10 @@ def _metric_table(results: dict, convergence: dict | None) -> tuple[dict, dict, 
         table[algo][f"all_episodes/{k}"] = _summary([
             m["all_episodes"][k] for m in res["per_seed"] if m["all_episodes"][k] is not None
         ])
+  for k in _battery_keys(results):
+    secondary.append(k)
+    for algo, res in results.items():
+      table[algo][k] = _summary([m[k] for m in res["per_seed"] if k in m])
   return table, unreached, secondary
 
 
@@ -139,7 +177,11 @@ def _cell(table: dict, algo: str, k: str) -> str:
   return f"{_fmt(t['mean'], t['std'])} [{t['ci95'][0]:.3g}, {t['ci95'][1]:.3g}]"
 
 
-def _row_name(k: str, convergence: dict | None, unreached: dict) -> str:
+def _row_name(k: str, convergence: dict | None, unreached: dict, table: dict | None = None) -> str:
+  if k.split("/")[0] in BATTERIES:
+    n = min(table[a][k]["n"] for a in ("mash", "ppo")) if table else None
+    seeds = f", {n} seeds" if n is not None else ""
+    return f"survival: {k.split('/', 1)[1]} ({BATTERIES[k.split('/')[0]][1]} battery{seeds})"
   name = k.replace("all_episodes/", "") + (" (all episodes, up to the fall)"
                                            if k.startswith("all_episodes/") else "")
   if "@" in k:
@@ -170,7 +212,7 @@ def _family_rows(task: str, table: dict, tests: dict, keys: list[str], convergen
     if primary:
       power = (f" {t['power']:.2f} | {t['detectable_effect']:.2f} |"
                if np.isfinite(t["power"]) else " n/a | n/a |")
-    lines.append(f"| {_row_name(k, convergence, unreached)} | {_cell(table, 'mash', k)} | "
+    lines.append(f"| {_row_name(k, convergence, unreached, table)} | {_cell(table, 'mash', k)} | "
                  f"{_cell(table, 'ppo', k)} | {p_holm} | {g} |{power} {t['verdict']} | "
                  f"{paper[0]} | {paper[1]} |")
   return lines
@@ -373,10 +415,10 @@ def build_from_dirs(task: str, out: Path, preset: str,
   dirs = {algo: [evaluated[algo][n] for n in paired] for algo in evaluated}
   results = {
       algo: {
-          "per_seed": [
-              json.loads((d / "eval" / "metrics.json").read_text())["per_seed"][0]
-              for d in dirs[algo]
-          ]
+          "per_seed": [{
+              **json.loads((d / "eval" / "metrics.json").read_text())["per_seed"][0],
+              **battery_survival(d)
+          } for d in dirs[algo]]
       } for algo in dirs
   }
   curves = {algo: method_curves(dirs[algo])[1] for algo in dirs}

@@ -7,8 +7,9 @@ both train on the same config and budget, one run per method and seed, paired by
 ``python -m experiments.<task>`` run, so on a CPU it uses both cores the same way). Every run is
 evaluated right after it trains, while its checkpoint is at hand, keeps its policy as a policy
 folder with its ONNX graph (``seed<s>/policy/``, ~200 KB: any later evaluation needs no
-retraining), has its record compacted (:mod:`mash.runs.records`), and the report is rewritten
-after each pair (:func:`mash.analysis.compare.write_report`).
+retraining), runs the robustness battery in MJX on that policy (``policy/eval_robustness/``,
+compared in the report's secondary family), has its record compacted (:mod:`mash.runs.records`),
+and the report is rewritten after each pair (:func:`mash.analysis.compare.write_report`).
 
 A comparison continues from its folder: a finished seed is reused, an interrupted one resumes from
 its checkpoint (or, when its checkpoints are not on this machine, trains again from the start,
@@ -37,7 +38,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mash.analysis import compare as compare_lib
-from mash.analysis import evaluation, reports
+from mash.analysis import evaluation, reports, robustness
 from mash.deploy import export
 from mash.deploy import policy as policy_lib
 from mash.errors import InputError
@@ -254,10 +255,22 @@ def keep_policy(run: Path, seed_dir: Path, seed: int = 0) -> None:
   print(f"[{seed_dir.parent.parent.name} {seed_dir.name}] kept its policy in {folder}", flush=True)
 
 
+def battery(seed_dir: Path) -> None:
+  """The robustness battery in MJX on ``seed_dir/policy/`` (its default conditions and
+  episodes), when that policy is there and its battery is not yet."""
+  folder = seed_dir / "policy"
+  if not policy_lib.is_policy_folder(folder) or (folder / "eval_robustness" /
+                                                 "robustness.json").is_file():
+    return
+  print(f"[{seed_dir.parent.parent.name} {seed_dir.name}] robustness battery in MJX", flush=True)
+  reports.robustness_run(str(folder), robustness.BatteryConfig())
+
+
 def finish_seed(run: Path) -> Path:
-  """A trained and evaluated one-seed run: its policy kept, its hip-pitch trace saved for the
-  report, its record compacted."""
+  """A trained and evaluated one-seed run: its policy kept and put through the robustness
+  battery, its hip-pitch trace saved for the report, its record compacted."""
   keep_policy(run, run)
+  battery(run)
   compare_lib.hip_trace(run)  # the few KiB of the hip-pitch plot that the committed records keep
   records.compact_tree(run, records.Tally(), records.Tally())
   return run
@@ -293,6 +306,7 @@ def split_group(group: Path, seeds: list[int]) -> list[Path]:
     reports.plot_hip_pitch(traj, float(trajectories["dt"]), d / "eval" / "hip_pitch.png",
                            json.loads(config)["algo"])
     keep_policy(group, d, seed=i)
+    battery(d)
     # Last: until it is there, the seed reads as stopped early (seed_state).
     (d / "summary.json").write_text(
         json.dumps({**summary, "group": group.name, "group_index": i}, indent=2))

@@ -72,46 +72,43 @@ class ExperimentConfig:
 
 
 def _preset_train(preset: str) -> train_config.TrainConfig:
-  # The paper's smoothness and torque-rate penalties are ~50x humanoid-gym's: at an initial action
-  # std of 1 they outweigh every positive term, the only-positive clip makes the reward 0 and
-  # nothing is learned (measured: step reward 5e-4 at std 1, ~0.1 at std 0.3). Start at std 0.3
-  # without the penalty curriculum (smoke); cpu and gpu start at std 1 under it (_preset_env).
+  # Action std 0.3 without the penalty curriculum (smoke); 1 under it (cpu, gpu): at std 1 the
+  # paper's smoothness penalties alone would zero the clipped reward (docs/decisions.md).
   base = dataclasses.replace(train_config.TrainConfig(), init_log_std=-1.2)
   if preset == "smoke":
     return dataclasses.replace(base, num_iterations=10, unroll_length=16, num_envs=64,
                                iterations_per_call=5, num_epochs=2, num_minibatches=2,
                                actor_hidden=(64, 64), critic_hidden=(64, 64), learning_rate=1e-3)
   if preset == "cpu":
-    # 1250 iterations of 400 envs (12 M steps) under two Newton iterations (_preset_env): 1.9-2.1 s
-    # per iteration on 2 Intel Xeon cores (family 6 model 167) as two local processes, 39-43 min
-    # with the compile. Action std from 1 under the penalty curriculum, slippery floors first
-    # under the friction curriculum (both of _preset_env, both end at iteration 1000), the stride
-    # reference, and a learning rate decaying to 0 at the last iteration (without the decay the
-    # last checkpoints swung between 11 % and 21 % falls). 400 envs rather than 512 pay for the
-    # second solver iteration within the 45 minutes.
-    return dataclasses.replace(base, num_iterations=1250, unroll_length=24, num_envs=400,
+    # 1100 iterations of 320 envs x 24 steps (8.4 M steps), the learning rate decaying to 0.
+    hidden = (256, 128, 64)
+    return dataclasses.replace(base, num_iterations=CPU_ITERATIONS, unroll_length=24, num_envs=320,
                                iterations_per_call=10, num_epochs=4, num_minibatches=4,
-                               actor_hidden=(256, 128, 64), critic_hidden=(256, 128,
-                                                                           64), learning_rate=1e-3,
+                               actor_hidden=hidden, critic_hidden=hidden, learning_rate=1e-3,
                                learning_rate_schedule="linear", init_log_std=0.0)
-  # gpu: the paper's 3000 iterations of 48 steps, 4096 envs, with the action std starting at 1
-  # under the penalty curriculum of _preset_env (measured on an H100, bipedal MASH: it walks at
-  # 0.18-0.19 m/s with 12-16 % falls by 167-263 M steps, where two runs of the paper's reward from
-  # the first step at std 0.3 stood with the feet planted at 110 M and 204 M steps).
+  # gpu: the paper's 3000 iterations of 4096 envs x 48 steps.
   return dataclasses.replace(base, init_log_std=0.0)
 
 
-# Control steps per env over which the presets' curricula run: the gpu preset phases in the
-# smoothness and torque-rate penalties by iteration 333 of 3000 (48 steps per iteration); the cpu
-# preset phases them in and widens the floor friction from CPU_FRICTION_INITIAL to the paper's
-# U[0.1, 1.2] by iteration 1000 of 1250 (24 steps; CPU policies' falls are the slippery floors').
-GPU_PENALTY_RAMP_STEPS = 16_000
-CPU_CURRICULUM_STEPS = 24_000
-CPU_FRICTION_INITIAL = (0.1, 0.3)
-CPU_TRACKING_SIGMA = 0.1
-# Newton iterations and line-search iterations of the cpu preset's physics (1 and 4 elsewhere).
-CPU_SOLVER_ITERATIONS = 2
-CPU_LS_ITERATIONS = 2
+# The presets' recipe beyond the paper (each choice and its measurement: docs/decisions.md).
+# Curricula, in control steps per env: the penalty ramp and the friction ramp end together, at
+# 80 % of the cpu preset's 1100 iterations of 24 steps and at iteration 333 of the gpu preset's
+# 3000 of 48.
+CPU_ITERATIONS = 1100
+CPU_CURRICULUM_STEPS = 21_000
+GPU_CURRICULUM_STEPS = 16_000
+FRICTION_INITIAL = (0.1, 0.3)  # the friction curriculum's first range, widening to the paper's
+TRACKING_SIGMA = 0.1  # the linear-velocity tracking kernel (legged_gym's 0.25 elsewhere)
+# Newton and line-search iterations (1 and 4 in smoke), and the physics step: the cpu preset
+# steps 3 substeps of 6.67 ms per 20 ms control step, the others 4 of 5 ms.
+SOLVER_ITERATIONS = 2
+LS_ITERATIONS = 2
+CPU_SIM_DT = 0.02 / 3
+# Velocity kicks of the torso: a horizontal velocity change of 0.2-1.2 m/s in a random direction
+# and a yaw-rate change of up to 0.3 rad/s, every 3-6 s, on top of the paper's per-step push.
+KICK_VELOCITY = (0.2, 1.2)
+KICK_INTERVAL_S = (3.0, 6.0)
+KICK_YAW_RATE = (0.0, 0.3)
 
 
 def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
@@ -122,34 +119,18 @@ def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
       task=task, partition=partition, commands=dataclasses.replace(base.commands, **spec.commands),
       reward_scales=dataclasses.replace(base.reward_scales, **spec.reward_scales))
   if preset == "smoke":
-    cfg = dataclasses.replace(cfg, episode_length=200)
-  ramp = {"gpu": GPU_PENALTY_RAMP_STEPS, "cpu": CPU_CURRICULUM_STEPS}.get(preset, 0)
-  if ramp:
-    cfg = dataclasses.replace(
-        cfg, reward_params=dataclasses.replace(cfg.reward_params, penalty_ramp_steps=ramp))
-  if preset == "cpu":
-    # The stride reference: the legs' reference strides at the commanded velocity, so the
-    # joint-position term rewards walking at the command (one run, 2026-12-01: 0.355 m/s at a
-    # 0.4 m/s command against 0.19-0.225 without it, at the same 91.8 % survival over 512
-    # episodes; benchmarks/results/2026-12-01_cpu_bipedal_mash_stride_reference/).
-    # A tighter velocity-tracking kernel, sigma_t 0.1 (the paper leaves it open; legged_gym's 0.25
-    # elsewhere): at 0.25 the policy drifted at 0.14 m/s when told to step in place and topped out
-    # at 0.5 m/s when told 0.8 (grid mean vx error 0.134 m/s); at 0.1, 0.066, with 7.0 % falls
-    # against 8.2 % (one run each, 2026-12-01; benchmarks/results/..._stride_sigma01/).
-    cfg = dataclasses.replace(
-        cfg, stride_reference=True,
-        randomization=dataclasses.replace(cfg.randomization, friction_initial=CPU_FRICTION_INITIAL,
-                                          friction_ramp_steps=CPU_CURRICULUM_STEPS),
-        reward_params=dataclasses.replace(cfg.reward_params, tracking_sigma=CPU_TRACKING_SIGMA))
-    # Two Newton iterations: at one, the contact forces on slippery floors are far from the
-    # converged ones (the same policy fell on 56 % of floors below friction 0.2 at 1 iteration,
-    # 33 % at 3-4), and the preset's policies fell on 57-83 % of those floors, 7-9 % of all
-    # episodes. Trained at 2 (line search 2: as fast as 1 at 2 iterations), three seeds fell
-    # on 20-26 % of them and survived 97.5-98.2 % of 512 episodes (2026-12-05).
-    cfg = dataclasses.replace(
-        cfg, physics=dataclasses.replace(cfg.physics, iterations=CPU_SOLVER_ITERATIONS,
-                                         ls_iterations=CPU_LS_ITERATIONS))
-  return cfg
+    return dataclasses.replace(cfg, episode_length=200)
+  ramp = CPU_CURRICULUM_STEPS if preset == "cpu" else GPU_CURRICULUM_STEPS
+  physics = dataclasses.replace(cfg.physics, iterations=SOLVER_ITERATIONS,
+                                ls_iterations=LS_ITERATIONS,
+                                sim_dt=CPU_SIM_DT if preset == "cpu" else cfg.physics.sim_dt)
+  randomization = dataclasses.replace(cfg.randomization, friction_initial=FRICTION_INITIAL,
+                                      friction_ramp_steps=ramp, kick_velocity=KICK_VELOCITY,
+                                      kick_interval_s=KICK_INTERVAL_S, kick_yaw_rate=KICK_YAW_RATE)
+  reward_params = dataclasses.replace(cfg.reward_params, penalty_ramp_steps=ramp,
+                                      tracking_sigma=TRACKING_SIGMA)
+  return dataclasses.replace(cfg, stride_reference=True, physics=physics,
+                             randomization=randomization, reward_params=reward_params)
 
 
 def _apply_ablation(cfg: ExperimentConfig) -> ExperimentConfig:
