@@ -408,6 +408,22 @@ def test_a_kick_changes_the_torso_velocity_when_its_timer_runs_out(random_rollou
       np.testing.assert_array_equal(dv, 0.0)
       assert int(kept["kick_timer"]) == 2 and np.all(np.asarray(kept["kick"]) == 0)
     np.testing.assert_array_equal(np.delete(dv, [0, 1, 5]), 0.0)
+  # Under the kick curriculum a slot 250 of 1000 steps in kicks at a quarter of the size.
+  ramped = env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2,
+                            randomization=dataclasses.replace(KICKS, kick_ramp_steps=1000))
+  info = dict(state.info, kick=jnp.zeros(3), kick_timer=jnp.asarray(1, jnp.int32),
+              env_steps=jnp.asarray(250, jnp.int32))
+  after, kept = ramped._kick(state.replace(info=info), jax.random.key(1))
+  dv = np.asarray(after.pipeline_state.qvel) - qvel
+  np.testing.assert_allclose(np.linalg.norm(dv[:2]), 0.125, rtol=1e-5)
+  np.testing.assert_allclose(abs(dv[5]), 0.05, rtol=1e-5)
+
+
+def test_kick_scale_hand_values():
+  ramp = randomize.DomainRandConfig(kick_ramp_steps=200)
+  for steps, scale in ((0, 0.0), (50, 0.25), (200, 1.0), (10_000, 1.0)):
+    assert float(randomize.kick_scale(ramp, jnp.asarray(steps))) == scale, steps
+  assert float(randomize.kick_scale(randomize.DomainRandConfig(), jnp.asarray(0))) == 1.0
 
 
 @pytest.mark.parametrize("standing", [0.0, 1.0])

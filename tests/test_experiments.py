@@ -102,15 +102,16 @@ def test_gpu_preset_is_the_cpu_recipe_at_the_papers_batch():
   assert gpu.train.init_log_std == 0.0
   same_recipe = dataclasses.replace(
       gpu.env, physics=dataclasses.replace(gpu.env.physics, sim_dt=cpu.env.physics.sim_dt),
-      randomization=dataclasses.replace(gpu.env.randomization, friction_ramp_steps=21_000),
+      randomization=dataclasses.replace(gpu.env.randomization, friction_ramp_steps=21_000,
+                                        kick_ramp_steps=21_000),
       reward_params=dataclasses.replace(gpu.env.reward_params, penalty_ramp_steps=21_000))
   assert same_recipe == cpu.env
 
 
 def test_cpu_preset_is_the_measured_walking_run():
   """The cpu preset is the config of the three recorded 1100-iteration runs of 320 envs x 24
-  steps with velocity kicks, 3 physics substeps, two Newton iterations, the stride reference
-  and the tracking kernel sigma_t 0.1, under friction and penalty curricula that end at 80 % of
+  steps with velocity kicks, 3 physics substeps, two Newton iterations, the stride reference and
+  the tracking kernel sigma_t 0.1, under kick, friction and penalty curricula that end at 80 % of
   the run (benchmarks/results/2026-12-06_cpu_preset_kicks/)."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
       "2026-12-06_cpu_preset_kicks" / "seed0" / "config.json"
@@ -126,6 +127,7 @@ def test_cpu_preset_is_the_measured_walking_run():
           preset.env.reward_params.yaw_sigma == 0.25)
   ramp = preset.env.reward_params.penalty_ramp_steps
   assert ramp == preset.env.randomization.friction_ramp_steps == 21_000
+  assert preset.env.randomization.kick_ramp_steps == ramp  # kicks grow as the gait forms
   assert ramp == pytest.approx(0.8 * 1100 * 24, rel=0.01)
   assert preset.env.randomization.friction == (0.1, 1.2)  # the paper's range, after the ramp
   assert preset.env.randomization.push_interval_s == 0.0  # the paper's per-step force stays

@@ -88,10 +88,10 @@ def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_confi
   commands = env_config.CommandConfig(vx=(cfg.command_vx, cfg.command_vx), vy=(0.0, 0.0),
                                       yaw_rate=(0.0, 0.0), standing_prob=0.0,
                                       resample_s=10 * cfg.episode_s)
-  # Evaluation draws from the friction range training ends on, not the curriculum's start nor
-  # the slippery floors' extra share.
+  # Evaluation draws from the friction range (and, with --kicks, the kicks) training ends on, not
+  # the curricula's start nor the slippery floors' extra share.
   randomization = dataclasses.replace(env_cfg.randomization, enabled=cfg.randomization,
-                                      friction_ramp_steps=0, slippery_share=0.0)
+                                      friction_ramp_steps=0, slippery_share=0.0, kick_ramp_steps=0)
   if not cfg.pushes:
     randomization = dataclasses.replace(randomization, push_force=(0.0, 0.0),
                                         push_torque=(0.0, 0.0))

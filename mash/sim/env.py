@@ -449,7 +449,8 @@ class MashEnv(brax_base.Env):
       return state, {}
     k_kick, k_timer = jax.random.split(jax.random.fold_in(key, 2))  # the other streams unmoved
     now = state.info["kick_timer"] <= 1
-    kick = jnp.where(now, randomize.sample_kick(k_kick, r), state.info["kick"])
+    fresh = randomize.sample_kick(k_kick, r) * randomize.kick_scale(r, state.info["env_steps"])
+    kick = jnp.where(now, fresh, state.info["kick"])
     timer = jnp.where(now, randomize.kick_interval_steps(k_timer, r, self.config.ctrl_dt),
                       state.info["kick_timer"] - 1)
     data = state.pipeline_state

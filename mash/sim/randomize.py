@@ -72,6 +72,9 @@ class DomainRandConfig:
     kick_interval_s: seconds between kicks, drawn anew after each one.
     kick_yaw_rate: a yaw-rate kick (rad/s) drawn with each velocity kick, sign uniform; (0, 0):
       none.
+    kick_ramp_steps: a curriculum on the kicks (ours): each kick is scaled by the fraction of
+      this many control steps that its env slot has run (the penalty curriculum's clock), so they
+      grow from nothing to full size; 0 (default): full size from the start.
 
 
   The sane range of every number is checked by :func:`check_config`.
@@ -99,6 +102,7 @@ class DomainRandConfig:
   kick_velocity: tuple[float, float] = (0.0, 0.0)
   kick_interval_s: tuple[float, float] = (5.0, 10.0)
   kick_yaw_rate: tuple[float, float] = (0.0, 0.0)
+  kick_ramp_steps: int = 0
 
   @property
   def kicks(self) -> bool:
@@ -129,6 +133,7 @@ BOUNDS = (
     Bound("kick_velocity", 0.0, 10.0, "m/s", pair=True),
     Bound("kick_interval_s", 0.0, MAX_INTERVAL_S, "s", open_low=True, pair=True),
     Bound("kick_yaw_rate", 0.0, 20.0, "rad/s", pair=True),
+    Bound("kick_ramp_steps", 0, MAX_INT32, "steps"),
 )
 
 
@@ -285,6 +290,14 @@ def sample_kick(key: jax.Array, config: DomainRandConfig) -> jax.Array:
   yaw = jax.random.uniform(k_yaw, minval=config.kick_yaw_rate[0], maxval=config.kick_yaw_rate[1])
   sign = jnp.where(jax.random.bernoulli(k_sign), 1.0, -1.0)
   return jnp.stack([size * jnp.cos(angle), size * jnp.sin(angle), sign * yaw])
+
+
+def kick_scale(config: DomainRandConfig, env_steps: jax.Array) -> jax.Array:
+  """``[]`` the kicks' size after ``env_steps`` control steps of an env slot, as a fraction of
+  full size: 1 without the curriculum (``kick_ramp_steps`` 0)."""
+  if config.kick_ramp_steps <= 0:
+    return jnp.ones(())
+  return jnp.clip(jnp.asarray(env_steps, jnp.float32) / config.kick_ramp_steps, 0.0, 1.0)
 
 
 def kick_interval_steps(key: jax.Array, config: DomainRandConfig, ctrl_dt: float) -> jax.Array:
