@@ -109,12 +109,12 @@ def main(argv=None) -> None:
 def _robustness(args) -> None:
   """``--robustness``: the battery in MJX (its own episodes, command and seed)."""
   cli.check_path(args.run, "--run")
-  given = [
-      f for f, v in (("--tracking", args.tracking), ("--no-dr", args.no_dr), ("--no-push",
-                                                                              args.no_push),
-                     ("--friction", args.friction), ("--push-interval", args.push_interval),
-                     ("--command-vx", args.command_vx), ("--kicks", args.kicks)) if v
-  ]
+  flags = {
+      "--tracking": args.tracking, "--no-dr": args.no_dr, "--no-push": args.no_push,
+      "--friction": args.friction, "--push-interval": args.push_interval,
+      "--command-vx": args.command_vx, "--kicks": args.kicks
+  }
+  given = [f for f, v in flags.items() if v]
   if given:
     raise cli.UserError(f"--robustness runs its own conditions; drop {', '.join(given)}")
   cfg = robustness.BatteryConfig(
