@@ -646,6 +646,10 @@ def test_compare_evaluates_each_run_right_after_it_trains(evaluated_smoke_run, t
   assert set(kept) == {("/".join(d.split("/")[-2:]), d.split("/")[-1], 0) for d in runs_in_order}
   assert (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv.gz").is_file()
   assert not (tmp_path / "cmp" / "mash" / "lr0.0003" / "seed1" / "progress.csv").exists()
+  from PIL import Image
+  for plot in ("reward_curves.png", "hip_pitch.png"):  # the report's plots compacted as well
+    with Image.open(tmp_path / "cmp" / plot) as image:
+      assert image.mode == "P", plot
   events.clear()
   compare.main(argv)
   assert events == []

@@ -420,5 +420,7 @@ def run(plan: Plan, given: bool) -> str:
       train_block(plan, algo, picked[algo], block)
     preset = json.loads(folder_config(dirs["mash"]).read_text())["preset"]
     md = compare_lib.write_report(plan.task, plan.out, preset, dirs)
+    for plot in ("reward_curves.png", "hip_pitch.png"):  # committed too: compact like the seeds'
+      records.compact_plot(plan.out / plot, records.Tally())
     print(f"report after {block[-1] + 1} paired seed(s): {plan.out}/report.md", flush=True)
   return md
