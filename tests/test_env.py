@@ -424,6 +424,12 @@ def test_kick_scale_hand_values():
   for steps, scale in ((0, 0.0), (50, 0.25), (200, 1.0), (10_000, 1.0)):
     assert float(randomize.kick_scale(ramp, jnp.asarray(steps))) == scale, steps
   assert float(randomize.kick_scale(randomize.DomainRandConfig(), jnp.asarray(0))) == 1.0
+  late = randomize.DomainRandConfig(kick_ramp_steps=200, kick_ramp_start_steps=100)
+  for steps, scale in ((0, 0.0), (100, 0.0), (150, 0.25), (300, 1.0)):
+    assert float(randomize.kick_scale(late, jnp.asarray(steps))) == scale, steps
+  sudden = randomize.DomainRandConfig(kick_ramp_start_steps=100)
+  for steps, scale in ((99, 0.0), (100, 1.0)):
+    assert float(randomize.kick_scale(sudden, jnp.asarray(steps))) == scale, steps
 
 
 @pytest.mark.parametrize("standing", [0.0, 1.0])

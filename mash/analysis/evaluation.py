@@ -91,7 +91,8 @@ def eval_env_config(env_cfg: env_config.EnvConfig, cfg: EvalConfig) -> env_confi
   # Evaluation draws from the friction range (and, with --kicks, the kicks) training ends on, not
   # the curricula's start nor the slippery floors' extra share.
   randomization = dataclasses.replace(env_cfg.randomization, enabled=cfg.randomization,
-                                      friction_ramp_steps=0, slippery_share=0.0, kick_ramp_steps=0)
+                                      friction_ramp_steps=0, slippery_share=0.0, kick_ramp_steps=0,
+                                      kick_ramp_start_steps=0)
   if not cfg.pushes:
     randomization = dataclasses.replace(randomization, push_force=(0.0, 0.0),
                                         push_torque=(0.0, 0.0))

@@ -75,6 +75,9 @@ class DomainRandConfig:
     kick_ramp_steps: a curriculum on the kicks (ours): each kick is scaled by the fraction of
       this many control steps that its env slot has run (the penalty curriculum's clock), so they
       grow from nothing to full size; 0 (default): full size from the start.
+    kick_ramp_start_steps: the control steps of an env slot before the kicks begin (ours): the
+      curriculum's fraction counts from here, so a gait can form unshoved first; 0 (default):
+      from the first step. With ``kick_ramp_steps`` 0 the kicks start at full size here.
 
 
   The sane range of every number is checked by :func:`check_config`.
@@ -103,6 +106,7 @@ class DomainRandConfig:
   kick_interval_s: tuple[float, float] = (5.0, 10.0)
   kick_yaw_rate: tuple[float, float] = (0.0, 0.0)
   kick_ramp_steps: int = 0
+  kick_ramp_start_steps: int = 0
 
   @property
   def kicks(self) -> bool:
@@ -134,6 +138,7 @@ BOUNDS = (
     Bound("kick_interval_s", 0.0, MAX_INTERVAL_S, "s", open_low=True, pair=True),
     Bound("kick_yaw_rate", 0.0, 20.0, "rad/s", pair=True),
     Bound("kick_ramp_steps", 0, MAX_INT32, "steps"),
+    Bound("kick_ramp_start_steps", 0, MAX_INT32, "steps"),
 )
 
 
@@ -294,10 +299,12 @@ def sample_kick(key: jax.Array, config: DomainRandConfig) -> jax.Array:
 
 def kick_scale(config: DomainRandConfig, env_steps: jax.Array) -> jax.Array:
   """``[]`` the kicks' size after ``env_steps`` control steps of an env slot, as a fraction of
-  full size: 1 without the curriculum (``kick_ramp_steps`` 0)."""
+  full size: 0 before ``kick_ramp_start_steps``, then growing linearly to 1 over
+  ``kick_ramp_steps`` (at once when that is 0)."""
+  since = jnp.asarray(env_steps, jnp.float32) - config.kick_ramp_start_steps
   if config.kick_ramp_steps <= 0:
-    return jnp.ones(())
-  return jnp.clip(jnp.asarray(env_steps, jnp.float32) / config.kick_ramp_steps, 0.0, 1.0)
+    return jnp.where(since >= 0, 1.0, 0.0)
+  return jnp.clip(since / config.kick_ramp_steps, 0.0, 1.0)
 
 
 def kick_interval_steps(key: jax.Array, config: DomainRandConfig, ctrl_dt: float) -> jax.Array:
