@@ -527,6 +527,26 @@ def test_stride_reference_carries_the_feet_at_the_commanded_velocity():
       env.gait(jnp.asarray(0.3), jnp.asarray(0.0), jnp.zeros(4))[0], atol=1e-7)
 
 
+def test_stride_feedback_plans_the_stride_at_the_measured_velocity():
+  """stride_feedback k: the stride is planned at command + k (measured - command) in the plane
+  (hand values), so the reference is the plain stride reference's at that velocity; at k = 0, or
+  with the torso at the command, it is the command's."""
+  k = 1.5
+  env = env_lib.make_env("bipedal", "mash", stride_reference=True, stride_feedback=k)
+  plain = env_lib.make_env("bipedal", "mash", stride_reference=True)
+  command, lin_vel = jnp.array([0.0, 0.4, 0.0, 0.3]), jnp.array([0.1, -0.5, 0.02])
+  np.testing.assert_allclose(env.stride_velocity(command, lin_vel), [-0.05, -0.75, 0.3], atol=1e-6)
+  np.testing.assert_array_equal(plain.stride_velocity(command, lin_vel), command[1:])
+  phase = jnp.asarray(0.3)
+  planned = jnp.array([0.0, -0.05, -0.75, 0.3])
+  np.testing.assert_allclose(
+      env.gait(phase, jnp.asarray(0.0), command, lin_vel)[0],
+      plain.gait(phase, jnp.asarray(0.0), planned)[0], atol=1e-6)
+  np.testing.assert_allclose(
+      env.gait(phase, jnp.asarray(0.0), command, command[1:])[0],
+      plain.gait(phase, jnp.asarray(0.0), command)[0], atol=1e-6)
+
+
 def test_randomize_sample_in_ranges_and_varies():
   """vmapped sample over 256 keys: every draw inside its configured range, different across envs."""
   cfg = randomize.DomainRandConfig()

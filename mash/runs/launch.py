@@ -385,12 +385,18 @@ def train_main(task: str, args: argparse.Namespace, argv: list[str] | None) -> N
       if cfg.env.stride_reference:
         say(
             f"stride reference on {cfg.env.robot}: "
-            f"{geometry.stride_plan(robots.load(cfg.env.robot))}", flush=True)
+            f"{geometry.stride_plan(robots.load(cfg.env.robot))}"
+            f"{_feedback_note(cfg.env.stride_feedback)}", flush=True)
       summary = loop.train(cfg, out, show_progress=not args.no_progress)
     _say_outcome(say, task, out, summary)
   status = cli.exit_status(summary)
   if status:
     sys.exit(status)
+
+
+def _feedback_note(k: float) -> str:
+  """The startup line's note on ``env.stride_feedback`` (nothing at 0)."""
+  return f"; planned at the command + {k:g} x (measured - command)" if k else ""
 
 
 def _say_outcome(say, task: str, out: str, summary: dict) -> None:

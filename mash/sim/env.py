@@ -188,21 +188,31 @@ class MashEnv(brax_base.Env):
     Delta_i)."""
     return 2 * jnp.pi * (phase + self._phase_offset)
 
-  def gait(self, phase: jax.Array, standing: jax.Array,
-           command: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+  def gait(self, phase: jax.Array, standing: jax.Array, command: jax.Array | None = None,
+           lin_vel: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
     """Reference joint offsets [J] and leg stance mask [2] for a gait phase (cycles); with
     ``config.stride_reference`` and the ``command`` [4], the legs' reference also strides at the
-    commanded velocity (:meth:`stride_offsets`)."""
+    commanded velocity (:meth:`stride_offsets`), or with ``config.stride_feedback`` and the
+    torso's ``lin_vel`` [3] at :meth:`stride_velocity`."""
     angle = self.limb_phase(phase)
     s = jnp.sin(angle)
     leg_ref = jnp.maximum(s, 0.0)  # legs: bend only in swing (sin > 0)
     per_joint = jnp.where(self._ref_is_leg, leg_ref[self._ref_limb], s[self._ref_limb])
     q_ref = self._ref_scale * per_joint
     if self._stride_gain is not None and command is not None:
-      q_ref = q_ref + self.stride_offsets(angle, command[1:])
+      q_ref = q_ref + self.stride_offsets(angle, self.stride_velocity(command, lin_vel))
     q_ref = q_ref * (1.0 - standing)
     stance = jnp.where(standing > 0, 1.0, (s[self._leg_limbs] < 0.1).astype(jnp.float32))
     return q_ref, stance
+
+  def stride_velocity(self, command: jax.Array, lin_vel: jax.Array | None) -> jax.Array:
+    """``[3]`` the velocity (vx, vy m/s, yaw rate rad/s, torso frame) the strides are planned at:
+    the ``command`` [4]'s, its planar part moved ``config.stride_feedback`` of the way to the
+    measured ``lin_vel`` [3] (none without it, or when 0)."""
+    k = self.config.stride_feedback
+    if k == 0 or lin_vel is None:
+      return command[1:]
+    return command[1:].at[:2].add(k * (lin_vel[:2] - command[1:3]))
 
   def stride_offsets(self, angle: jax.Array, velocity: jax.Array) -> jax.Array:
     """[J] leg joint offsets that carry each foot through a stride at ``velocity`` [3] (vx, vy m/s,
@@ -327,7 +337,7 @@ class MashEnv(brax_base.Env):
     ``layout.critic`` say (one step: :meth:`with_history` stacks the agents' frames)."""
     cfg = self.config
     command = info["command"]
-    q_ref, stance = self.gait(info["phase"], command[0], command)
+    q_ref, stance = self.gait(info["phase"], command[0], command, s["lin_vel"])
     angle = self.limb_phase(info["phase"])
     phase_sc = jnp.stack([jnp.sin(angle), jnp.cos(angle)], axis=-1)  # [L, 2]
     if not cfg.temporal_director:
@@ -517,14 +527,16 @@ class MashEnv(brax_base.Env):
                      command: jax.Array, phase: jax.Array) -> rewards.RewardInputs:
     """What the reward terms read of this step (:class:`mash.sim.rewards.RewardInputs`)."""
     cfg = self.config
-    q_ref, stance = self.gait(phase, command[0], command)
+    q_ref, stance = self.gait(phase, command[0], command, s["lin_vel"])
     feet_vel = (s["feet_xy"] - info["feet_xy"]) / cfg.ctrl_dt
     feet_vel = jnp.where(info["step"] > 0, feet_vel, 0.0)
-    # Stride: where the foot landed against where a stride at the commanded velocity would land.
+    # Stride: where the foot landed against where a stride at the commanded velocity (with
+    # stride_feedback, the stride velocity) would land.
     yaw = s["euler"][2]
+    v = self.stride_velocity(command, s["lin_vel"])
     cmd_world = jnp.array([
-        jnp.cos(yaw) * command[1] - jnp.sin(yaw) * command[2],
-        jnp.sin(yaw) * command[1] + jnp.cos(yaw) * command[2]
+        jnp.cos(yaw) * v[0] - jnp.sin(yaw) * v[1],
+        jnp.sin(yaw) * v[0] + jnp.cos(yaw) * v[1]
     ])
     stride = s["feet_xy"] - info["liftoff_xy"]
     air_time = info["air_time"] + cfg.ctrl_dt

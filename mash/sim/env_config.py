@@ -66,6 +66,13 @@ class EnvConfig:
       pitch for vx, hip roll for vy, hip yaw for the yaw rate, the ankle keeping the sole level;
       ``MashEnv.stride_offsets``), so the joint-position term, the reward's largest, rewards
       walking at the command instead of taxing it.
+    stride_feedback: (ours; 0 by default) where the stride reference and the feet-air-time
+      term's stride target take their velocity: ``command + k (measured - command)`` in the plane
+      (torso frame; the yaw rate stays the command's). 0: the command, as before. 1: the torso's
+      own velocity, so the target foothold is the Raibert neutral point; above 1 it also steps
+      against the error (Raibert's foot placement), so after a shove the reward asks for the
+      catching step instead of taxing it. The actors never see it (the reward and the critic's
+      reference error do).
     agent_id: append the one-hot agent id to each agent's observation (ablation switch).
     critic: 'global' (the 106-dim privileged state, MASH) or 'local' (IPPO ablation: the critic
       input is every agent's own observation, zero-padded to the largest and stacked, so a
@@ -96,6 +103,7 @@ class EnvConfig:
   swing_amplitude: float | None = None
   arm_swing_amplitude: float | None = None
   stride_reference: bool = False
+  stride_feedback: float = 0.0
   agent_id: bool = True
   critic: str = "global"
   temporal_director: bool = True
@@ -126,6 +134,7 @@ ENV_BOUNDS = (
     Bound("arm_swing_amplitude", 0.0, np.pi, "rad"),
     Bound("fall_height", 0.0, 5.0, "m"),
     Bound("fall_tilt", 0.0, np.pi, "rad", open_low=True),
+    Bound("stride_feedback", 0.0, 3.0, ""),
     Bound("actor_history", 1, MAX_ACTOR_HISTORY, "control steps"),
 )
 COMMAND_BOUNDS = (
