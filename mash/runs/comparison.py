@@ -146,6 +146,20 @@ def _without_seed(cfg: dict[str, Any]) -> dict[str, Any]:
   return cfg
 
 
+def _read_config(path: Path) -> dict[str, Any]:
+  """A run's ``config.json`` as today's code reads it (JSON types), so that a field added since,
+  whose default keeps the old behaviour, is no difference.
+
+  Raises:
+    InputError: the file is not a config this code can read.
+  """
+  try:
+    cfg = experiment.from_json(Path(path).read_text())
+  except (OSError, experiment.ConfigError) as e:
+    raise InputError(f"'{path}' cannot be read as a run's config ({e})") from None
+  return json.loads(json.dumps(experiment.to_dict(cfg)))
+
+
 def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
   """The first field (dotted path, ``a -> b``) in which two JSON trees differ, or None."""
   if isinstance(a, dict) and isinstance(b, dict):
@@ -168,9 +182,9 @@ def folder_config(parent: Path) -> Path | None:
       Path(parent).glob("group_seeds*/config.json"))
   if not files:
     return None
-  first = _without_seed(json.loads(files[0].read_text()))
+  first = _without_seed(_read_config(files[0]))
   for other in files[1:]:
-    diff = _first_difference(first, _without_seed(json.loads(other.read_text())))
+    diff = _first_difference(first, _without_seed(_read_config(other)))
     if diff:
       raise InputError(f"'{files[0].parent}' and '{other.parent}' were trained on different "
                        f"configs ({diff}): a comparison's runs may differ only in the seed")
@@ -185,7 +199,7 @@ def check_continued(plan: Plan, algo: str, lr: float, config_file: Path, given: 
   asked = experiment.to_dict(
       experiment.make_config(plan.task, algo, plan.preset, 1, "none",
                              [*plan.overrides, f"train.learning_rate={lr:g}"]))
-  diff = _first_difference(_without_seed(json.loads(config_file.read_text())),
+  diff = _first_difference(_without_seed(_read_config(config_file)),
                            _without_seed(json.loads(json.dumps(asked))))
   if diff:
     raise InputError(f"'{plan.out}' continues on its runs' own config ({config_file}); "
