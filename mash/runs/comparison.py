@@ -42,7 +42,7 @@ from mash.analysis import evaluation, reports, robustness
 from mash.deploy import export
 from mash.deploy import policy as policy_lib
 from mash.errors import InputError
-from mash.runs import experiment, records
+from mash.runs import experiment, loop, records
 
 # Fields in which the runs of one method may differ: which seed(s) each trained.
 SEED_FIELDS = (("seeds",), ("train", "seed"))
@@ -147,17 +147,9 @@ def _without_seed(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _read_config(path: Path) -> dict[str, Any]:
-  """A run's ``config.json`` as today's code reads it (JSON types), so that a field added since,
-  whose default keeps the old behaviour, is no difference.
-
-  Raises:
-    InputError: the file is not a config this code can read.
-  """
-  try:
-    cfg = experiment.from_json(Path(path).read_text())
-  except (OSError, experiment.ConfigError) as e:
-    raise InputError(f"'{path}' cannot be read as a run's config ({e})") from None
-  return json.loads(json.dumps(experiment.to_dict(cfg)))
+  """The run's config beside ``path`` (its ``config.json``) as today's code reads it, so that a
+  field added since, whose default keeps the old behaviour, is no difference."""
+  return experiment.to_dict(loop.load_config(Path(path).parent))
 
 
 def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
@@ -199,8 +191,7 @@ def check_continued(plan: Plan, algo: str, lr: float, config_file: Path, given: 
   asked = experiment.to_dict(
       experiment.make_config(plan.task, algo, plan.preset, 1, "none",
                              [*plan.overrides, f"train.learning_rate={lr:g}"]))
-  diff = _first_difference(_without_seed(_read_config(config_file)),
-                           _without_seed(json.loads(json.dumps(asked))))
+  diff = _first_difference(_without_seed(_read_config(config_file)), _without_seed(asked))
   if diff:
     raise InputError(f"'{plan.out}' continues on its runs' own config ({config_file}); "
                      f"--preset/--set would change {diff}: drop them, or start another --out")
