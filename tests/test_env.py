@@ -419,6 +419,45 @@ def test_a_kick_changes_the_torso_velocity_when_its_timer_runs_out(random_rollou
   np.testing.assert_allclose(abs(dv[5]), 0.05, rtol=1e-5)
 
 
+def test_kick_relief_counts_the_steps_since_the_kick(random_rollout):
+  """With reward_params.kick_relief_s on, a fresh episode's kick state says "long ago" (the cap)
+  and the kick stage keeps the steps since the last kick: 0 on the kick's step, +1 after; the
+  step itself zeroes the gait terms on the kick's step and keeps them once the window is past.
+  A kick the curriculum scales to 0 does not count. Without the relief there is no such count
+  (the state of earlier kicked runs)."""
+  params = dataclasses.replace(rewards.RewardParams(), kick_relief_s=0.1)
+  relief = env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2,
+                            randomization=KICKS, reward_params=params)
+  assert int(relief._fresh_kick(jax.random.key(0))["kick_age"]) == env_lib._KICK_AGE_CAP
+  assert "kick_age" not in env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH,
+                                            actor_history=2,
+                                            randomization=KICKS)._fresh_kick(jax.random.key(0))
+  state = jax.tree.map(lambda x: jnp.asarray(x[0]), random_rollout[0])  # upright: no reset
+  step = jax.jit(relief.step)
+  action = jnp.zeros((relief.action_size,))
+  for timer, age, want_age in ((1, 7, 0), (3, 7, 8), (3, env_lib._KICK_AGE_CAP,
+                                                      env_lib._KICK_AGE_CAP)):
+    info = dict(state.info, kick=jnp.zeros(3), kick_timer=jnp.asarray(timer, jnp.int32),
+                kick_age=jnp.asarray(age, jnp.int32))
+    _, kept = relief._kick(state.replace(info=info), jax.random.key(timer))
+    assert int(kept["kick_age"]) == want_age, (timer, age)
+    after = step(state.replace(info=info), action)
+    assert int(after.info["kick_age"]) == want_age
+    assert not bool(after.done)
+    values = {n: float(after.metrics[f"reward/{n}"]) for n in params.relieved_terms}
+    if want_age < 5:
+      assert all(v == 0.0 for v in values.values()), values
+    else:  # the clearance term is 0 whenever no swing foot is at its height: not a witness
+      assert values["joint_pos"] > 0 and values["feet_contact_number"] != 0, values
+  # Before the kick curriculum starts its kicks are of size 0: no relief.
+  late = env_lib.make_env("bipedal", "mash", episode_length=EPISODE_LENGTH, actor_history=2,
+                          randomization=dataclasses.replace(KICKS, kick_ramp_start_steps=100),
+                          reward_params=params)
+  info = dict(state.info, kick=jnp.zeros(3), kick_timer=jnp.asarray(1, jnp.int32),
+              kick_age=jnp.asarray(7, jnp.int32), env_steps=jnp.asarray(50, jnp.int32))
+  assert int(late._kick(state.replace(info=info), jax.random.key(1))[1]["kick_age"]) == 8
+
+
 def test_kick_scale_hand_values():
   ramp = randomize.DomainRandConfig(kick_ramp_steps=200)
   for steps, scale in ((0, 0.0), (50, 0.25), (200, 1.0), (10_000, 1.0)):

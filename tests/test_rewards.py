@@ -206,6 +206,28 @@ def test_tracking_boost_falls_to_the_paper_scales():
       np.testing.assert_allclose(terms[name], want, rtol=1e-6, err_msg=f"{name} at {steps}")
 
 
+def test_kick_relief_turns_the_gait_terms_off_for_its_window():
+  """kick_relief_s 0.1 at dt 0.02 (5 steps): the three gait terms are 0 for steps 0-4 after a
+  kick and whole from step 5 on, every other term untouched at every step; off by default; under
+  jit; a name that is no term is refused in one line."""
+  terms = rewards.reward_terms(_inputs(), rewards.RewardScales(), P)
+  assert rewards.kick_relief(terms, jnp.int32(0), DT, P) is terms  # off: the same dict
+  relief = dataclasses.replace(P, kick_relief_s=0.1)
+  relieved = set(relief.relieved_terms)
+  assert relieved == {"joint_pos", "feet_contact_number", "feet_clearance"}
+  assert all(float(terms[n]) != 0.0 for n in relieved)  # so a zero below is the relief's
+  relieve = jax.jit(lambda t, age: rewards.kick_relief(t, age, DT, relief))
+  for age, on in ((0, False), (4, False), (5, True), (2**28, True)):
+    got = relieve(terms, jnp.int32(age))
+    for name in PAPER_TERMS:
+      want = 0.0 if name in relieved and not on else float(terms[name])
+      np.testing.assert_allclose(got[name], want, rtol=1e-6, err_msg=f"{name} at {age}")
+  with pytest.raises(ValueError, match="^relieved_terms: 'gait' is not a reward term"):
+    rewards.check_params(dataclasses.replace(P, relieved_terms=("gait",)))
+  with pytest.raises(ValueError, match="^kick_relief_s"):
+    rewards.check_params(dataclasses.replace(P, kick_relief_s=-1.0))
+
+
 def test_total_reward_only_positive_clip():
   """total_reward sums the terms; only_positive clips a negative sum to 0 and leaves positives."""
   negative = {"a": jnp.float32(-1.0), "b": jnp.float32(0.4)}  # sum -0.6

@@ -28,6 +28,9 @@ from mash.sim.env_config import EnvConfig, check_config, with_robot_numbers
 
 State = brax_base.State
 
+# Steps since the last kick stop counting here (~4 months of control steps): no int32 overflow.
+_KICK_AGE_CAP = 2**28
+
 
 def pd_torque(q_target: jax.Array, q: jax.Array, dq: jax.Array, kp: jax.Array, kd: jax.Array,
               tau_max: jax.Array) -> jax.Array:
@@ -423,6 +426,9 @@ class MashEnv(brax_base.Env):
     paper_terms = rewards.reward_terms(x, self.config.reward_scales, self.config.reward_params,
                                        curricula=False)
     terms = rewards.apply_curricula(paper_terms, x.env_steps, self.config.reward_params)
+    if "kick_age" in kick:
+      terms = rewards.kick_relief(terms, kick["kick_age"], self.config.ctrl_dt,
+                                  self.config.reward_params)
     finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
     fall, truncation = self._terminate(state.info, s, finite)
     info = self._next_info(state.info, keys.rng, s, action, torque, contact, command, phase, push,
@@ -448,12 +454,17 @@ class MashEnv(brax_base.Env):
     if not r.kicks:
       return {}
     timer = randomize.kick_interval_steps(jax.random.fold_in(key, 2), r, self.config.ctrl_dt)
-    return {"kick": jnp.zeros((randomize.KICK_SIZE,)), "kick_timer": timer}
+    fresh = {"kick": jnp.zeros((randomize.KICK_SIZE,)), "kick_timer": timer}
+    if self.config.reward_params.kick_relief_s > 0:  # no kick yet: as if the last were long ago
+      fresh["kick_age"] = jnp.asarray(_KICK_AGE_CAP, jnp.int32)
+    return fresh
 
   def _kick(self, state: State, key: jax.Array) -> tuple[State, dict[str, jax.Array]]:
     """The torso kicked when its timer runs out: its horizontal velocity (world frame) and yaw
     rate jump by a fresh kick, and the timer restarts; returns the state to step from and the
-    kick state to keep (the last kick, the steps to the next). Nothing without kicks."""
+    kick state to keep (the last kick, the steps to the next and, with
+    ``reward_params.kick_relief_s``, the steps since the last kick above size 0, 0 on its
+    step). Nothing without kicks."""
     r = self.config.randomization
     if not r.kicks:
       return state, {}
@@ -466,9 +477,11 @@ class MashEnv(brax_base.Env):
     data = state.pipeline_state
     qvel = data.qvel.at[0:2].add(jnp.where(now, kick[:2],
                                            0.0)).at[5].add(jnp.where(now, kick[2], 0.0))
-    return state.replace(pipeline_state=data.replace(qvel=qvel)), {
-        "kick": kick, "kick_timer": timer
-    }
+    kept = {"kick": kick, "kick_timer": timer}
+    if "kick_age" in state.info:
+      felt = now & jnp.any(fresh != 0.0)  # not the zero kicks before the kick curriculum starts
+      kept["kick_age"] = jnp.where(felt, 0, jnp.minimum(state.info["kick_age"] + 1, _KICK_AGE_CAP))
+    return state.replace(pipeline_state=data.replace(qvel=qvel)), kept
 
   def _actuate(self, state: State, action: jax.Array, push: jax.Array,
                k_delay: jax.Array) -> tuple[mjx.Data, jax.Array]:

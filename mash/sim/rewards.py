@@ -72,6 +72,14 @@ class RewardParams:
       exploring and the reward after the curriculum is the paper's. 1 (default): off.
     tracking_boost_steps: length of that curriculum in control steps per env slot.
     boosted_terms: the terms it multiplies. Default: the two velocity-tracking terms.
+    kick_relief_s: (ours) for this many seconds after each velocity kick of the torso
+      (``DomainRandConfig.kick_velocity``) the ``relieved_terms`` are off, so a recovery step
+      out of the gait's rhythm (a crossover, a quick second step) is not taxed for leaving the
+      reference; the rest of the reward, tracking and survival included, stays. A kick the kick
+      curriculum scales to nothing relieves nothing; without kicks it does nothing. 0 (default):
+      off.
+    relieved_terms: the terms it turns off. Default: the three that bind the legs to the gait
+      clock (the reference pose, the stance schedule, the swing height of the scheduled swing).
 
 
   The sane range of every number is checked by :func:`check_params`.
@@ -92,6 +100,8 @@ class RewardParams:
   tracking_boost: float = 1.0
   tracking_boost_steps: int = 0
   boosted_terms: tuple[str, ...] = ("tracking_lin_vel", "tracking_ang_vel")
+  kick_relief_s: float = 0.0
+  relieved_terms: tuple[str, ...] = ("joint_pos", "feet_contact_number", "feet_clearance")
 
 
 class RewardInputs(NamedTuple):
@@ -254,6 +264,7 @@ PARAM_BOUNDS = (
     Bound("tracking_boost", 1.0, 100.0, "(1 = no curriculum)"),
     Bound("penalty_ramp_steps", 0, MAX_INT32, "steps (0 = no curriculum)"),
     Bound("tracking_boost_steps", 0, MAX_INT32, "steps (0 = no curriculum)"),
+    Bound("kick_relief_s", 0.0, 60.0, "s (0 = off)"),
 )
 
 
@@ -273,7 +284,7 @@ def check_params(params: RewardParams) -> None:
   Raises:
     ValueError: one line naming the field, its value and what was expected.
   """
-  for field in ("ramped_terms", "boosted_terms"):
+  for field in ("ramped_terms", "boosted_terms", "relieved_terms"):
     unknown = [t for t in getattr(params, field) if t not in TERMS]
     if unknown:
       raise ValueError(f"{field}: '{unknown[0]}' is not a reward term; expected names from "
@@ -328,6 +339,21 @@ def apply_curricula(terms: dict[str, jax.Array], env_steps: jax.Array | None,
             (boost if name in params.boosted_terms else 1.0))
 
   return {name: value * factor(name) for name, value in terms.items()}
+
+
+def kick_relief(terms: dict[str, jax.Array], steps_since_kick: jax.Array, dt: float,
+                params: RewardParams) -> dict[str, jax.Array]:
+  """``terms`` with the ``params.relieved_terms`` zeroed while ``steps_since_kick`` control steps
+  of ``dt`` seconds are fewer than ``params.kick_relief_s`` (rounded to whole steps; the kick's
+  own step counts as 0); ``terms`` unchanged when the relief is off."""
+  if params.kick_relief_s <= 0:
+    return terms
+  relief_steps = round(params.kick_relief_s / dt)
+  after = (steps_since_kick >= relief_steps).astype(jnp.float32)
+  return {
+      name: value * after if name in params.relieved_terms else value
+      for name, value in terms.items()
+  }
 
 
 def total_reward(terms: dict[str, jax.Array], params: RewardParams) -> jax.Array:
