@@ -78,6 +78,20 @@ def test_native_battery_on_a_shipped_policy(tmp_path):
   assert (out / "robustness.png").stat().st_size > 0
 
 
+def test_each_kick_direction_meets_the_whole_gait_cycle():
+  """The default battery's 64 episodes start at 64 distinct phases, and each of the 8 kick
+  directions' 8 episodes start every 1/8 of a cycle (the old 0.37 e mod 1 gave each direction a
+  0.28-cycle window of its own)."""
+  cfg = robustness.BatteryConfig()
+  n, k = cfg.episodes, cfg.kick_directions
+  phases = np.array([native_battery.start_phase(e, n) for e in range(n)])
+  assert len(np.unique(phases)) == n and phases.min() >= 0.0 and phases.max() < 1.0
+  for d in range(k):
+    mine = np.sort(phases[d::k])
+    np.testing.assert_allclose(np.diff(mine), k / n)
+    np.testing.assert_allclose(mine[0], d / n)
+
+
 def test_robustness_flags(tmp_path, capsys):
   """--robustness runs its own conditions in MuJoCo C: a flag it has no use for is one error
   line, and so are --workers without it and a bad --episodes."""

@@ -18,8 +18,9 @@ command. Each condition as the MJX battery applies it:
 - **latency**: the action applied ``delay`` control steps late (:class:`Controller`'s queue; the
   action fed back to the policy is the one applied, as in MJX).
 
-Episode ``e`` of a condition (``e = 0 .. episodes - 1``) starts at gait phase ``(0.37 e) mod 1``
-(:func:`start_phase`; the MJX battery draws its phases from the episodes' keys) and draws its noise
+Episode ``e`` of a condition (``e = 0 .. episodes - 1``) starts at gait phase ``e / episodes``
+(:func:`start_phase`; the MJX battery draws its phases from the episodes' keys), so the episodes of
+each kick direction (``e mod kick_directions``) meet the whole gait cycle alike, and draws its noise
 from ``(cfg.seed, e)``: episode ``e`` is the same under every condition, as in MJX. Episodes run
 in a pool of spawned processes, each building its robot and ONNX session once; every episode is
 fixed by its index, so the result does not depend on the number of processes.
@@ -41,13 +42,16 @@ from mash.analysis import reports, robustness
 from mash.deploy import export, sim2sim
 from mash.sim import robots
 
-PHASE_STEP = 0.37  # gait phase between consecutive episodes (cycles): spreads them over the cycle
 NOISY = ("euler", "ang_vel", "q", "dq")  # the readings the noise bounds apply to, in their order
 
 
-def start_phase(e: int) -> float:
-  """The gait phase (cycles, [0, 1)) episode ``e`` of every condition starts at."""
-  return (e * PHASE_STEP) % 1.0
+def start_phase(e: int, episodes: int) -> float:
+  """The gait phase (cycles, [0, 1)) episode ``e`` of ``episodes`` starts at, under every
+  condition: ``e / episodes``. The kick of episode ``e`` goes in direction ``e mod k`` of ``k``, so
+  each direction's episodes start every ``k / episodes`` of a cycle and direction and phase are
+  crossed. (Until 2026-12-07 it was ``0.37 e mod 1``, which gave each direction a 0.28-cycle
+  window of its own: the survival by direction then measured the phase as much as the direction.)"""
+  return e / episodes
 
 
 def sensor_noise(bounds: np.ndarray,
@@ -103,8 +107,8 @@ class Runner:
     sense = (sensor_noise(noise, np.random.default_rng([self.cfg.seed, e])) if np.any(
         noise > 0) else None)
     kick = (self.kick_step, np.asarray(p.kick, np.float64)) if np.any(p.kick != 0) else None
-    traj = sim2sim.run_episode(self.robot, controller, self.command, self.steps, start_phase(e),
-                               self.hips, sense=sense, kick=kick)
+    traj = sim2sim.run_episode(self.robot, controller, self.command, self.steps,
+                               start_phase(e, self.cfg.episodes), self.hips, sense=sense, kick=kick)
     return traj["alive"], traj["forward_velocity"].astype(np.float32)
 
 
