@@ -61,6 +61,31 @@ def test_tracking_against_a_hand_computation():
   assert out["mean_abs_error"]["yaw_rate"] == pytest.approx(0.025)
   assert out["fall_rate"] == pytest.approx(0.25)
   assert out["standing_drift"] == pytest.approx(0.025)
+  # Reach: the walking command (0.4, 0, 0) pooled 2.2/6 m/s; no one-axis vy or yaw command.
+  assert out["reach"]["vx"] == pytest.approx(2.2 / 6 / 0.4)
+  assert out["reach"]["vy"] is None and out["reach"]["yaw_rate"] is None
+
+
+def test_reach_averages_the_one_axis_commands_and_skips_the_rest():
+  """Turning at 0.1 of +0.5 and -0.2 of -0.5 rad/s reaches (0.2 + 0.4) / 2 = 0.3; the mixed,
+  standing and zero commands count for no axis."""
+
+  def entry(command, vx=0.0, vy=0.0, yaw=0.0):
+    return {"command": command, "vx": vx, "vy": vy, "yaw_rate": yaw}
+
+  grid = [
+      entry([1, 0, 0, 0], vx=0.3),
+      entry([0, 0, 0, 0], vx=0.1),
+      entry([0, 0, 0, 0.5], yaw=0.1),
+      entry([0, 0, 0, -0.5], yaw=-0.2),
+      entry([0, 0.4, 0, 0.5], vx=0.0, yaw=0.0),
+      entry([0, -0.3, 0, 0], vx=-0.15),
+      entry([0, 0.8, 0, 0], vx=0.8)
+  ]
+  reach = evaluation.command_reach(grid)
+  assert reach["yaw_rate"] == pytest.approx(0.3)
+  assert reach["vx"] == pytest.approx((0.5 + 1.0) / 2)
+  assert reach["vy"] is None
 
 
 def test_heading_velocity_turns_with_the_yaw_alone():
@@ -90,7 +115,7 @@ def test_evaluate_tracking_writes_the_grid(smoke_run):
   result = tracking_run(str(smoke_run), cfg)
   out = smoke_run / "eval_tracking"
   data = json.loads((out / "tracking.json").read_text())
-  assert set(data) >= {"grid", "mean_abs_error", "fall_rate", "standing_drift"}
+  assert set(data) >= {"grid", "mean_abs_error", "fall_rate", "standing_drift", "reach"}
   assert len(data["grid"]) == len(evaluation.TRACKING_GRID)
   for g, command in zip(data["grid"], evaluation.TRACKING_GRID):
     assert g["command"] == pytest.approx(list(command))

@@ -388,7 +388,8 @@ def tracking(traj: dict[str, np.ndarray], commands: np.ndarray) -> dict[str, Any
     ``episode_std`` {axis: standard deviation of the episodes' velocities};
     ``mean_abs_error`` {axis: mean over the grid of ``abs_error``}; ``fall_rate`` over all
     episodes; ``standing_drift`` (m/s): over the standing command's episodes, the mean norm of
-    the planar velocity (net displacement over time alive), ``None`` without a standing command.
+    the planar velocity (net displacement over time alive), ``None`` without a standing command;
+    ``reach`` {axis: :func:`command_reach`}.
   """
   commands = np.asarray(commands, np.float64).reshape(-1, 4)
   alive = np.asarray(traj["alive"], np.float64)
@@ -424,7 +425,30 @@ def tracking(traj: dict[str, np.ndarray], commands: np.ndarray) -> dict[str, Any
       },
       "fall_rate": float(1.0 - survived.mean()),
       "standing_drift": drift,
+      "reach": command_reach(grid),
   }
+
+
+def command_reach(grid: list[dict[str, Any]]) -> dict[str, float | None]:
+  """Per axis, how much of a command along that axis alone is achieved: the mean over the walking
+  grid commands that move along it alone of achieved / commanded (1: on command, 0: not at all;
+  ``None`` when the grid has no such command). A mean error over a grid whose commands mostly ask
+  for no turning can pass a policy that does not turn; this cannot.
+
+  Args:
+    grid: :func:`tracking`'s ``grid`` entries (``command`` [standing, vx, vy, yaw_rate] and the
+      achieved ``vx``, ``vy``, ``yaw_rate``).
+  """
+  reach = {}
+  for i, axis in enumerate(TRACKING_AXES):
+    ratios = [
+        g[axis] / g["command"][1 + i]
+        for g in grid
+        if not g["command"][0] and g["command"][1 + i] and not any(
+            g["command"][1 + j] for j in range(len(TRACKING_AXES)) if j != i)
+    ]
+    reach[axis] = float(np.mean(ratios)) if ratios else None
+  return reach
 
 
 def tracking_commands(episodes_per_command: int, grid: tuple[tuple[float, ...],

@@ -274,6 +274,10 @@ def print_tracking(result: dict) -> None:
   print(f"mean |error|: vx {err['vx']:.3f} m/s, vy {err['vy']:.3f} m/s, yaw rate "
         f"{err['yaw_rate']:.3f} rad/s; falls {result['fall_rate']:.3f}; standing drift " +
         ("n/a" if drift is None else f"{drift:.3f} m/s"))
+  reach = result.get("reach") or {}
+  if any(v is not None for v in reach.values()):
+    print("reach (achieved / commanded, one-axis commands): " +
+          ", ".join(f"{axis} {v:.2f}" for axis, v in reach.items() if v is not None))
 
 
 def print_metrics(result: dict) -> None:
