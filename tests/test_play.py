@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from experiments import play
@@ -27,6 +28,18 @@ def test_shipped_policies_are_listed():
   assert "t1_bipedal_mash" in play_lib.shipped_policies()
 
 
+def test_mean_yaw_rate_unwraps_the_heading_and_stops_at_a_fall():
+  """A heading turning at +0.5 rad/s through +-pi for 200 steps of 0.02 s, then falling (the
+  yaw after it is noise): (199 x 0.01 rad) / (199 x 0.02 s) = 0.5 rad/s; one step alive: 0."""
+  t = np.arange(300)
+  yaw = np.angle(np.exp(1j * (3.0 + 0.01 * t)))  # wraps from +pi to -pi at step 15
+  yaw[200:] = np.random.default_rng(0).uniform(-np.pi, np.pi, 100)
+  euler = np.stack([0 * yaw, 0 * yaw, yaw], -1)
+  alive = (t < 200).astype(float)
+  assert play_lib.mean_yaw_rate(euler, alive, 0.02) == pytest.approx(0.5)
+  assert play_lib.mean_yaw_rate(euler, (t < 1).astype(float), 0.02) == 0.0
+
+
 def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
   """Two seconds of the shipped T1 policy at 0.4 m/s, in a subprocess (MUJOCO_GL is chosen before
   mujoco is imported): it walks, says so, and the MP4 is there."""
@@ -41,6 +54,7 @@ def test_play_headless_writes_the_video(tmp_path, skip_for_missing_gl):
   ], capture_output=True, text=True, cwd=tmp_path, env=_headless_env(), timeout=300)
   assert out.returncode == 0, out.stdout + out.stderr[-3000:]
   assert f"wrote {video}" in out.stdout and "walked 2.0 s" in out.stdout, out.stdout
+  assert " rad/s; wrote" in out.stdout, out.stdout  # the heading's change is reported
   data = video.read_bytes()
   assert len(data) > 10_000 and data[4:8] == b"ftyp"  # an MP4 container with frames in it
 

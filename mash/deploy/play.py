@@ -227,8 +227,18 @@ def record(o: Options, onnx_path: Path, spec: robots.RobotSpec, meta: Mapping[st
   held = alive.sum() * dep.ctrl_dt
   speed = float((traj["forward_velocity"] * alive).sum() / max(alive.sum(), 1.0))
   say(("fell after " if alive.min() == 0 else "walked ") + f"{held:.1f} s, mean vx "
-      f"{speed:+.3f} m/s; wrote {o.video} ({writer.frames} frames, "
-      f"{time.perf_counter() - t0:.0f} s)")
+      f"{speed:+.3f} m/s, yaw rate {mean_yaw_rate(traj['euler'], alive, dep.ctrl_dt):+.3f} rad/s; "
+      f"wrote {o.video} ({writer.frames} frames, {time.perf_counter() - t0:.0f} s)")
+
+
+def mean_yaw_rate(euler: np.ndarray, alive: np.ndarray, dt: float) -> float:
+  """The torso's mean yaw rate (rad/s) over the steps alive: its net heading change, unwrapped
+  across +-pi, over their time. ``euler`` ``[T, 3]`` (roll, pitch, yaw), ``alive`` ``[T]``."""
+  n = int(np.asarray(alive).sum())
+  if n < 2:
+    return 0.0
+  yaw = np.unwrap(np.asarray(euler)[:n, 2])
+  return float((yaw[-1] - yaw[0]) / ((n - 1) * dt))
 
 
 def run(o: Options, backend: str | None, say: Callable[[str], None] = print) -> None:
