@@ -441,14 +441,15 @@ def command_reach(grid: list[dict[str, Any]]) -> dict[str, float | None]:
   """
   reach = {}
   for i, axis in enumerate(TRACKING_AXES):
-    ratios = [
-        g[axis] / g["command"][1 + i]
-        for g in grid
-        if not g["command"][0] and g["command"][1 + i] and not any(
-            g["command"][1 + j] for j in range(len(TRACKING_AXES)) if j != i)
-    ]
+    ratios = [g[axis] / g["command"][1 + i] for g in grid if _walks_along_only(g["command"], i)]
     reach[axis] = float(np.mean(ratios)) if ratios else None
   return reach
+
+
+def _walks_along_only(command: list[float], axis: int) -> bool:
+  """Whether ``command`` [standing, vx, vy, yaw_rate] walks along axis ``axis`` and no other."""
+  velocity = np.asarray(command[1:])
+  return not command[0] and velocity[axis] != 0 and np.count_nonzero(velocity) == 1
 
 
 def tracking_commands(episodes_per_command: int, grid: tuple[tuple[float, ...],
