@@ -466,6 +466,9 @@ def test_compare_puts_the_robustness_batteries_in_the_secondary_family(tmp_path)
   assert data["table"]["mash"][key]["n"] == 3 and data["tests"][key]["verdict"] == "MASH better"
   md, _ = compare.build_report("bipedal", {"mash": seeds(0.5, 3), "ppo": seeds(0.9, 3)}, "smoke", 4)
   assert "| survival: kick 0.5 m/s (MJX battery, 3 seeds) |" in md and "PPO better" in md
+  # Held by 4 MASH seeds and 3 PPO ones: the row says both counts.
+  md, _ = compare.build_report("bipedal", {"mash": seeds(0.5, 4), "ppo": seeds(0.9, 3)}, "smoke", 4)
+  assert "| survival: kick 0.5 m/s (MJX battery, 4 / 3 seeds) |" in md
   # One seed a method holds a battery: no row (no test below two seeds a method).
   _, data = compare.build_report("bipedal", {"mash": seeds(0.9, 1), "ppo": seeds(0.5, 3)}, "smoke",
                                  4)

@@ -179,8 +179,10 @@ def _cell(table: dict, algo: str, k: str) -> str:
 
 def _row_name(k: str, convergence: dict | None, unreached: dict, table: dict | None = None) -> str:
   if k.split("/")[0] in BATTERIES:
-    n = min(table[a][k]["n"] for a in ("mash", "ppo")) if table else None
-    seeds = f", {n} seeds" if n is not None else ""
+    seeds = ""
+    if table:  # where the methods hold the battery on different seed counts: both, MASH's first
+      n_mash, n_ppo = (table[a][k]["n"] for a in ("mash", "ppo"))
+      seeds = f", {n_mash} seeds" if n_mash == n_ppo else f", {n_mash} / {n_ppo} seeds"
     return f"survival: {k.split('/', 1)[1]} ({BATTERIES[k.split('/')[0]][1]} battery{seeds})"
   name = k.replace("all_episodes/", "") + (" (all episodes, up to the fall)"
                                            if k.startswith("all_episodes/") else "")
