@@ -127,10 +127,7 @@ def test_entry_points_are_thin():
   assert total < MAX_EXPERIMENTS_LINES, total
 
 
-# 30 until 2026-12-07, when the records of issue 52's candidates passed it (31.8 MB): a run's
-# progress.csv.gz is ~336 KB of 19-digit floats that 9 significant digits (float32's round trip)
-# would shrink by ~40 %; until the records are compacted so, the budget is 35.
-MAX_TRACKED_MB = 35
+MAX_TRACKED_MB = 30
 MAX_README_LINES = 250
 
 

@@ -6,8 +6,11 @@ PNGs.
 Walks each PATH (a folder, walked recursively, or a single ``.png`` file) and, in every folder that
 holds a run's progress logs:
 
-- ``progress.csv`` is replaced by ``progress.csv.gz``, the same bytes gzip-compressed
-  deterministically (no file name, mtime 0, level 9), so a rerun gives identical bytes;
+- ``progress.csv`` is replaced by ``progress.csv.gz``, gzip-compressed deterministically (no file
+  name, mtime 0, level 9), so a rerun gives identical bytes, with each float32 metric written
+  with 9 significant digits instead of the float64 text of up to 19 (read back by
+  ``read_progress`` as the very values logged; a ``progress.csv.gz`` compacted before this is
+  rewritten so);
 - ``progress_seeds.csv`` (the per-seed log) is dropped when the run has one seed (its
   ``config.json`` says ``"seeds": 1``, or, without one, the file holds a single seed value) and
   the run's ``progress.csv(.gz)`` is there: it then repeats that log's columns. Any other run
@@ -22,8 +25,8 @@ would be lost), so a rerun changes no byte.
 Prints one line per file changed and, for logs and for plots, the total of their bytes before and
 after. Running it again changes nothing. Nothing inside a ``checkpoints/``,
 ``checkpoints_unrestorable/``, ``tensorboard/`` or ``cut_off/`` folder is touched. A folder holding
-both ``X.csv`` and ``X.csv.gz`` loses the ``.csv`` when the two hold the same bytes (a compaction
-cut short); when they differ, it is reported as an error and both are left as they are (exit
+both ``X.csv`` and ``X.csv.gz`` loses the ``.csv`` when the two hold the same values (a
+compaction cut short); when they differ, it is reported as an error and both are left as they are (exit
 status 1). A PATH that is neither an existing folder nor an existing ``.png`` file is refused
 (exit status 2) before anything is changed. The work is :mod:`mash.runs.records`'s.
 

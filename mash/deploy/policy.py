@@ -43,7 +43,7 @@ import numpy as np
 
 from mash.errors import InputError
 from mash.rl import networks, normalization
-from mash.runs import checkpoint, experiment
+from mash.runs import checkpoint, experiment, records
 from mash.sim import env as env_lib
 from mash.sim import robots
 
@@ -326,7 +326,9 @@ def read_progress(run_dir: str | os.PathLike, per_seed: bool = False) -> dict[st
   iteration, mean over seeds) or, with ``per_seed``, ``progress_seeds.csv`` (one row per
   iteration and seed, with a ``seed`` column). A one-seed run keeps no per-seed log: its
   ``progress.csv`` is returned with a ``seed`` column of zeros. Either log may be gzip-compressed
-  (``.csv.gz``, a committed record). Empty when the run has logged nothing."""
+  (``.csv.gz``, a committed record, whose float32 cells are written with 9 digits; each cell is
+  read with :func:`mash.runs.records.read_cell`, so they are the values training logged). Empty
+  when the run has logged nothing."""
   run_dir = Path(run_dir)
   path = _log(run_dir, "progress_seeds.csv" if per_seed else "progress.csv")
   if path is None:
@@ -339,4 +341,4 @@ def read_progress(run_dir: str | os.PathLike, per_seed: bool = False) -> dict[st
     rows = list(csv.DictReader(f))
   if not rows:
     return {}
-  return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+  return {k: np.array([records.read_cell(r[k], k) for r in rows]) for k in rows[0]}
