@@ -26,8 +26,8 @@ Prints one line per file changed and, for logs and for plots, the total of their
 after. Running it again changes nothing. Nothing inside a ``checkpoints/``,
 ``checkpoints_unrestorable/``, ``tensorboard/`` or ``cut_off/`` folder is touched. A folder holding
 both ``X.csv`` and ``X.csv.gz`` loses the ``.csv`` when the two hold the same values (a
-compaction cut short); when they differ, it is reported as an error and both are left as they are (exit
-status 1). A PATH that is neither an existing folder nor an existing ``.png`` file is refused
+compaction cut short); when they differ, it is reported as an error and both are left as they are
+(exit status 1). A PATH that is neither an existing folder nor an existing ``.png`` file is refused
 (exit status 2) before anything is changed. The work is :mod:`mash.runs.records`'s.
 
 Do not run it on a folder a training run is still writing.
