@@ -101,6 +101,15 @@ TRACKING_SIGMA = 0.1  # the cpu preset's linear-velocity tracking kernel (legged
 # The cpu preset's Newton and line-search iterations (1 and 4 elsewhere).
 SOLVER_ITERATIONS = 2
 LS_ITERATIONS = 2
+# Velocity kicks of the torso in the cpu and gpu presets (issue 52; MuJoCo Playground's T1
+# schedule, no yaw-rate kick): none before KICK_START_FRACTION of the curriculum, full size at
+# KICK_START_FRACTION + KICK_RAMP_FRACTION of it. Kicked policies stop turning and slow down unless
+# the tracking terms weigh more (candidates J, L, M in docs/decisions.md).
+KICK_VELOCITY = (0.1, 1.0)
+KICK_INTERVAL_S = (5.0, 10.0)
+KICK_START_FRACTION = 0.4
+KICK_RAMP_FRACTION = 0.5
+KICKED_TRACKING_SCALES = {"tracking_lin_vel": 2.0, "tracking_ang_vel": 2.8}
 
 
 def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
@@ -113,17 +122,33 @@ def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
   if preset == "smoke":
     return dataclasses.replace(cfg, episode_length=200)
   if preset == "gpu":
-    return dataclasses.replace(
-        cfg, reward_params=dataclasses.replace(cfg.reward_params,
-                                               penalty_ramp_steps=GPU_CURRICULUM_STEPS))
+    return _with_kicks(
+        dataclasses.replace(
+            cfg, reward_params=dataclasses.replace(cfg.reward_params,
+                                                   penalty_ramp_steps=GPU_CURRICULUM_STEPS)),
+        GPU_CURRICULUM_STEPS)
   physics = dataclasses.replace(cfg.physics, iterations=SOLVER_ITERATIONS,
                                 ls_iterations=LS_ITERATIONS)
   randomization = dataclasses.replace(cfg.randomization, friction_initial=FRICTION_INITIAL,
                                       friction_ramp_steps=CPU_CURRICULUM_STEPS)
   reward_params = dataclasses.replace(cfg.reward_params, penalty_ramp_steps=CPU_CURRICULUM_STEPS,
                                       tracking_sigma=TRACKING_SIGMA)
-  return dataclasses.replace(cfg, stride_reference=True, physics=physics,
-                             randomization=randomization, reward_params=reward_params)
+  return _with_kicks(
+      dataclasses.replace(cfg, stride_reference=True, physics=physics,
+                          randomization=randomization, reward_params=reward_params),
+      CPU_CURRICULUM_STEPS)
+
+
+def _with_kicks(cfg: env_config.EnvConfig, curriculum_steps: int) -> env_config.EnvConfig:
+  """``cfg`` with the presets' velocity kicks, timed on the curriculum's clock (control steps per
+  env), and the tracking scales that keep a kicked policy following its commands."""
+  randomization = dataclasses.replace(
+      cfg.randomization, kick_velocity=KICK_VELOCITY, kick_interval_s=KICK_INTERVAL_S,
+      kick_yaw_rate=(0.0, 0.0), kick_ramp_start_steps=round(KICK_START_FRACTION * curriculum_steps),
+      kick_ramp_steps=round(KICK_RAMP_FRACTION * curriculum_steps))
+  return dataclasses.replace(
+      cfg, randomization=randomization,
+      reward_scales=dataclasses.replace(cfg.reward_scales, **KICKED_TRACKING_SCALES))
 
 
 def _apply_ablation(cfg: ExperimentConfig) -> ExperimentConfig:
