@@ -103,9 +103,9 @@ def test_gpu_preset_is_the_measured_walking_run():
                                kick_ramp_start_steps=6400, kick_ramp_steps=8000)
   scales = dataclasses.replace(measured.env.reward_scales, tracking_lin_vel=2.0,
                                tracking_ang_vel=2.8)
-  assert dataclasses.replace(measured, checkpoint_env_state=True,
-                             env=dataclasses.replace(measured.env, randomization=kicked,
-                                                     reward_scales=scales)) == preset
+  assert dataclasses.replace(
+      measured, checkpoint_env_state=True,
+      env=dataclasses.replace(measured.env, randomization=kicked, reward_scales=scales)) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 16_000
   assert preset.train.init_log_std == 0.0
 

@@ -134,9 +134,8 @@ def _preset_env(preset: str, task: str, algo: str) -> env_config.EnvConfig:
   reward_params = dataclasses.replace(cfg.reward_params, penalty_ramp_steps=CPU_CURRICULUM_STEPS,
                                       tracking_sigma=TRACKING_SIGMA)
   return _with_kicks(
-      dataclasses.replace(cfg, stride_reference=True, physics=physics,
-                          randomization=randomization, reward_params=reward_params),
-      CPU_CURRICULUM_STEPS)
+      dataclasses.replace(cfg, stride_reference=True, physics=physics, randomization=randomization,
+                          reward_params=reward_params), CPU_CURRICULUM_STEPS)
 
 
 def _with_kicks(cfg: env_config.EnvConfig, curriculum_steps: int) -> env_config.EnvConfig:
