@@ -97,21 +97,25 @@ def test_gpu_preset_is_the_measured_walking_run():
   measured = experiment.from_json(recorded.read_text())
   assert measured.env.randomization.push_interval_s == 1.0
   preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "gpu"))
-  per_step_pushes = dataclasses.replace(measured.env.randomization, push_interval_s=0.0)
-  assert dataclasses.replace(measured, checkpoint_env_state=True,
-                             env=dataclasses.replace(measured.env,
-                                                     randomization=per_step_pushes)) == preset
+  # The kicks and tracking scales of the cpu recipe (issue 52), on the gpu curriculum's clock.
+  kicked = dataclasses.replace(measured.env.randomization, push_interval_s=0.0,
+                               kick_velocity=(0.1, 1.0), kick_interval_s=(5.0, 10.0),
+                               kick_ramp_start_steps=6400, kick_ramp_steps=8000)
+  scales = dataclasses.replace(measured.env.reward_scales, tracking_ang_vel=2.8)
+  assert dataclasses.replace(
+      measured, checkpoint_env_state=True,
+      env=dataclasses.replace(measured.env, randomization=kicked, reward_scales=scales)) == preset
   assert preset.env.reward_params.penalty_ramp_steps == 16_000
   assert preset.train.init_log_std == 0.0
 
 
 def test_cpu_preset_is_the_measured_walking_run():
-  """The cpu preset is the recorded 1250-iteration CPU run of 400 envs under two Newton
+  """The cpu preset is the recorded 1875-iteration CPU run of 400 envs under two Newton
   iterations, with the stride reference and the tracking kernel sigma_t 0.1 (friction and
-  penalty curricula, linear learning-rate decay, torque noise): 98.2 % survival over 512
-  episodes at 0.404 m/s (0.4 commanded), grid mean vx error 0.032 m/s."""
+  penalty curricula, linear learning-rate decay, torque noise), and velocity kicks ramped in
+  from 40 % to 90 % of the curricula with the yaw-tracking scale 2.8 (candidate O, issue 52)."""
   recorded = Path(__file__).parent.parent / "benchmarks" / "results" / \
-      "2026-12-05_compare_bipedal_newton2" / "mash" / "lr0.001" / "seed0" / "config.json"
+      "2026-12-06_cpu_preset_kicks" / "longer_seed0" / "config.json"
   measured = experiment.from_json(recorded.read_text())
   assert json.loads(recorded.read_text())["env"]["randomization"]["torque_noise"] == 0.02
   preset = _with_robot_numbers(experiment.make_config("bipedal", "mash", "cpu"))
@@ -121,12 +125,15 @@ def test_cpu_preset_is_the_measured_walking_run():
   assert (preset.env.reward_params.tracking_sigma == 0.1 and
           preset.env.reward_params.yaw_sigma == 0.25)
   assert _with_robot_numbers(measured) == preset
-  assert preset.env.reward_params.penalty_ramp_steps == 24_000 == 1000 * preset.train.unroll_length
-  assert preset.env.randomization.friction_ramp_steps == 24_000
+  assert preset.env.reward_params.penalty_ramp_steps == 36_000 == 1500 * preset.train.unroll_length
+  assert preset.env.randomization.friction_ramp_steps == 36_000
   assert preset.env.randomization.friction == (0.1, 1.2)  # the paper's range, after the ramp
   assert preset.env.randomization.push_interval_s == 0.0
-  assert not preset.env.randomization.kicks  # the kicked candidate missed the bar (2026-12-06)
+  kicks = preset.env.randomization
+  assert kicks.kicks and kicks.kick_velocity == (0.1, 1.0) and kicks.kick_yaw_rate == (0.0, 0.0)
+  assert (kicks.kick_ramp_start_steps, kicks.kick_ramp_steps) == (14_400, 18_000)
   smoke = experiment.make_config("bipedal", "mash", "smoke")
+  assert not smoke.env.randomization.kicks
   assert smoke.env.reward_params.penalty_ramp_steps == 0 and smoke.train.init_log_std == -1.2
   assert smoke.env.randomization.friction_initial is None
 
